@@ -1,0 +1,245 @@
+"""Command line: ``slam2d run | info | convert | simulate | eval | dump-config``.
+
+Every user mistake (bad file, bad config, bad option) ends as one line on stderr and a
+non-zero exit; a traceback means a bug in slam2d.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import sys
+import time
+from pathlib import Path
+
+from slam2d.errors import Slam2dError, UsageError
+
+log = logging.getLogger("slam2d")
+
+EXAMPLES = """examples:
+  slam2d run ../shared/datasets/intel/intel.clf.bz2 --out runs/intel
+  slam2d run data/sim_office.mcap --out runs/sim --odometry-only
+  slam2d info ../shared/datasets/fr079/fr079.clf.bz2 --json
+  slam2d convert ../shared/datasets/aces/aces.clf.bz2 aces.mcap
+  slam2d simulate data/sim_office.mcap --seed 7
+  slam2d eval relations runs/intel/trajectory.txt ../shared/datasets/intel/intel.relations
+  slam2d dump-config > my.yaml
+"""
+
+
+def _add_input(p):
+    p.add_argument("input", help="CARMEN log (.clf/.log, plain/.gz/.bz2) or MCAP (.mcap)")
+    p.add_argument("--scan-topic", default=None, help="MCAP: LaserScan topic (default: the only one)")
+    p.add_argument("--odom-topic", default=None, help="MCAP: Odometry topic (default: the only one, if any)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="slam2d", description="2D LiDAR SLAM: maps and trajectories from laser logs.",
+                                 epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    sub = ap.add_subparsers(dest="command", metavar="COMMAND")
+
+    p = sub.add_parser("run", help="run SLAM on a log and write trajectory, map and summary",
+                       epilog="example:\n  slam2d run ../shared/datasets/intel/intel.clf.bz2 --out runs/intel",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    _add_input(p)
+    p.add_argument("--out", required=True, help="output folder (created; files are replaced only when the run completes)")
+    p.add_argument("--config", default=None, help="YAML config (default: built-in defaults = configs/default.yaml)")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--odometry-only", action="store_true", help="no scan matching: poses are the wheel odometry")
+    mode.add_argument("--no-loop-closure", action="store_true", help="local SLAM only (no global optimization)")
+    p.add_argument("--max-scans", type=int, default=None, help="stop after this many scans")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+    p = sub.add_parser("info", help="describe a log: scans, duration, beams, ranges, odometry",
+                       epilog="example:\n  slam2d info ../shared/datasets/intel/intel.clf.bz2 --json",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    _add_input(p)
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+
+    p = sub.add_parser("convert", help="convert a log to MCAP (ROS 2 LaserScan + Odometry)",
+                       epilog="example:\n  slam2d convert ../shared/datasets/intel/intel.clf.bz2 intel.mcap",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    _add_input(p)
+    p.add_argument("output", help="output .mcap file")
+    p.add_argument("--no-progress", action="store_true")
+
+    p = sub.add_parser("simulate", help="write the deterministic simulated dataset as MCAP",
+                       epilog="example:\n  slam2d simulate data/sim_office.mcap --seed 7",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("output", help="output .mcap file")
+    p.add_argument("--seed", type=int, default=7, help="random seed (same seed, same bytes)")
+
+    p = sub.add_parser("dump-config", help="print every option with its default and description")
+    p.add_argument("--config", default=None, help="print this config file's values instead of the defaults")
+    p.add_argument("-o", "--output", default=None, help="write to a file instead of stdout")
+
+    from slam2d.eval.cli import add_eval_parser
+
+    add_eval_parser(sub)
+    return ap
+
+
+def _progress(total, disable, desc):
+    from tqdm import tqdm
+
+    return tqdm(total=total, disable=disable or not sys.stderr.isatty(), unit="scan", desc=desc, dynamic_ncols=True)
+
+
+def _source(args):
+    from slam2d.io.source import open_source
+
+    return open_source(args.input, scan_topic=args.scan_topic, odom_topic=args.odom_topic)
+
+
+def _limited(source, n):
+    for i, s in enumerate(source):
+        if n is not None and i >= n:
+            return
+        yield s
+
+
+def cmd_run(args) -> int:
+    from slam2d.config import load_config
+    from slam2d.mapper import Mapper, OdometryTracker, build_map
+    from slam2d.output import OutputDir, config_text
+    from slam2d.summary import run_summary
+
+    cfg = load_config(args.config)
+    if args.max_scans is not None and args.max_scans <= 0:
+        raise UsageError("--max-scans must be positive")
+    src = _source(args)
+    total = src.num_scans() if hasattr(src, "num_scans") else None
+    if args.max_scans:
+        total = min(total, args.max_scans) if total else args.max_scans
+    out = OutputDir(args.out)
+    t0 = time.perf_counter()
+    if args.odometry_only:
+        tracker, mode = OdometryTracker(cfg), "odometry"
+    else:
+        from slam2d.frontend import LocalSlam
+
+        tracker, mode = LocalSlam(cfg), "local"
+    try:
+        with _progress(total, args.no_progress, "slam2d") as bar:
+            result = Mapper(cfg, tracker).run(_limited(src, args.max_scans), progress=bar)
+        t_map = time.perf_counter()
+        grid = build_map(cfg, result.nodes)
+        wall_map = time.perf_counter() - t_map
+        out.write_trajectory("trajectory.txt", result.stamps, result.poses)
+        out.write_map(grid, cfg)
+        out.write_text("config.yaml", config_text(cfg))
+        wall = time.perf_counter() - t0
+        out.write_json("summary.json", run_summary(args.input, mode, result, wall, wall_map, tracker))
+        out.commit()
+    except BaseException:
+        out.abort()
+        raise
+    log.info("wrote %s (%d scans, %.1f s)", args.out, len(result.stamps), wall)
+    print(f"{len(result.stamps)} scans -> {args.out} in {wall:.1f} s")
+    return 0
+
+
+def cmd_info(args) -> int:
+    from slam2d.summary import describe
+
+    info = describe(_source(args))
+    info["file"] = args.input
+    if args.json:
+        print(json.dumps(info, indent=2))
+    else:
+        for k, v in info.items():
+            print(f"{k:>22}: {v}")
+    return 0
+
+
+def cmd_convert(args) -> int:
+    import os
+
+    from slam2d.io.mcap import McapWriter
+
+    outp = Path(args.output)
+    if outp.suffix.lower() != ".mcap":
+        raise UsageError(f"{outp}: output must end in .mcap")
+    src = _source(args)
+    total = src.num_scans() if hasattr(src, "num_scans") else None
+    tmp = Path(f"{outp}.partial")
+    n = 0
+    try:
+        with open(tmp, "wb") as f, _progress(total, args.no_progress, "convert") as bar:
+            w = McapWriter(f)
+            for scan in src:
+                w.write_scan(scan)
+                n += 1
+                bar.update(1)
+            w.finish()
+        os.replace(tmp, outp)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    print(f"{n} scans -> {outp}")
+    return 0
+
+
+def cmd_simulate(args) -> int:
+    import os
+
+    from slam2d.io.simulator import SimConfig, write_simulation
+
+    outp = Path(args.output)
+    if outp.suffix.lower() != ".mcap":
+        raise UsageError(f"{outp}: output must end in .mcap")
+    tmp = Path(f"{outp}.partial")
+    try:
+        n = write_simulation(tmp, SimConfig(seed=args.seed))
+        os.replace(tmp, outp)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    print(f"{n} scans -> {outp}")
+    return 0
+
+
+def cmd_dump_config(args) -> int:
+    from slam2d.config import dump_config, load_config
+
+    text = dump_config(load_config(args.config))
+    if args.output:
+        Path(args.output).write_text(text)
+    else:
+        sys.stdout.write(text)
+    return 0
+
+
+COMMANDS = {"run": cmd_run, "info": cmd_info, "convert": cmd_convert, "simulate": cmd_simulate,
+            "dump-config": cmd_dump_config}
+
+
+def main(argv=None) -> int:
+    ap = build_parser()
+    args = ap.parse_args(argv)
+    level = logging.WARNING - 10 * min(args.verbose, 2)
+    logging.basicConfig(level=level, format="slam2d: %(levelname)s: %(message)s")
+    if args.command is None:
+        ap.print_help()
+        return 2
+    fn = COMMANDS.get(args.command)
+    if fn is None:
+        from slam2d.eval.cli import run_eval
+
+        fn = run_eval
+    try:
+        return fn(args)
+    except Slam2dError as e:
+        print(f"slam2d: error: {e}", file=sys.stderr)
+        return e.exit_code
+    except KeyboardInterrupt:
+        print("slam2d: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,161 @@
+"""Configuration: one pydantic section per pipeline component.
+
+``slam2d dump-config`` prints every option with its default and description; the shipped
+``configs/default.yaml`` is exactly that output. Sensor facts (beam count, angles, range
+limits, no-return value) are never configured: they come from the data.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from slam2d.errors import ConfigError
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class RangeFilterConfig(_Section):
+    """Which readings local SLAM uses (a processing choice, not a sensor fact)."""
+
+    min_range: float = Field(0.0, ge=0.0, description="Readings closer than this [m] are dropped (the sensor's own range_min always applies).")
+    max_range: float = Field(30.0, gt=0.0, description="Hits farther than this [m] are not matched or inserted as hits; the ray up to it is inserted as free space.")
+    missing_data_ray_length: float = Field(5.0, ge=0.0, description="No-return beams insert free space up to this length [m] (0 disables); they never insert a hit.")
+    voxel_filter_size: float = Field(0.025, ge=0.0, description="Points are thinned to one per square cell of this size [m] before matching (0 disables).")
+
+
+class GridConfig(_Section):
+    """Log-odds probability grid (Cartographer's probability_grid_range_data_inserter)."""
+
+    resolution: float = Field(0.05, gt=0.0, le=1.0, description="Cell size of submaps [m].")
+    hit_probability: float = Field(0.55, gt=0.5, lt=1.0, description="Probability that a cell holding a scan endpoint is occupied.")
+    miss_probability: float = Field(0.49, gt=0.0, lt=0.5, description="Probability that a cell crossed by a ray is occupied.")
+    min_probability: float = Field(0.12, gt=0.0, lt=0.5, description="Lower clamp of cell probabilities.")
+    max_probability: float = Field(0.97, gt=0.5, lt=1.0, description="Upper clamp of cell probabilities.")
+
+
+class SubmapConfig(_Section):
+    """Two overlapping active submaps, as in Cartographer."""
+
+    num_range_data: int = Field(90, ge=1, description="Scans inserted into a submap before the next one starts; a submap is finished after twice this many.")
+
+
+class MotionFilterConfig(_Section):
+    """A scan is inserted only when the robot moved enough since the last inserted scan."""
+
+    max_distance: float = Field(0.2, ge=0.0, description="Insert when translation since the last insertion exceeds this [m].")
+    max_angle_deg: float = Field(1.0, ge=0.0, description="Insert when rotation since the last insertion exceeds this [deg].")
+    max_time: float = Field(5.0, ge=0.0, description="Insert when this much time [s] passed since the last insertion.")
+
+
+class RealTimeMatcherConfig(_Section):
+    """Olson 2009 real-time correlative scan matcher (local SLAM)."""
+
+    linear_search_window: float = Field(0.15, gt=0.0, description="Half-width of the x/y search window around the predicted pose [m].")
+    angular_search_window_deg: float = Field(5.0, gt=0.0, le=180.0, description="Half-width of the rotation search window [deg].")
+    branch_depth: int = Field(2, ge=0, le=6, description="Levels of the coarse-to-fine search (0 = exhaustive); results equal the exhaustive search on the same lattice.")
+
+
+class RefineConfig(_Section):
+    """Continuous refinement below cell size (Gauss-Newton on the interpolated grid, like Cartographer's Ceres matcher)."""
+
+    enabled: bool = Field(True, description="Refine the correlative pose below cell size.")
+    occupied_space_weight: float = Field(1.0, gt=0.0, description="Weight of the grid term.")
+    translation_weight: float = Field(10.0, ge=0.0, description="Weight pulling x/y toward the correlative pose.")
+    rotation_weight: float = Field(40.0, ge=0.0, description="Weight pulling theta toward the correlative pose.")
+    max_iterations: int = Field(20, ge=1, description="Gauss-Newton iterations at most.")
+
+
+class MapConfig(_Section):
+    """The exported occupancy map (ROS map_server PGM + YAML, and PNG)."""
+
+    resolution: float = Field(0.05, gt=0.0, le=1.0, description="Cell size of the exported map [m].")
+    occupied_thresh: float = Field(0.65, gt=0.0, lt=1.0, description="map.yaml occupied_thresh.")
+    free_thresh: float = Field(0.196, gt=0.0, lt=1.0, description="map.yaml free_thresh.")
+
+    @model_validator(mode="after")
+    def _thresholds(self):
+        if self.free_thresh >= self.occupied_thresh:
+            raise ValueError("free_thresh must be below occupied_thresh")
+        return self
+
+
+class SlamConfig(_Section):
+    range_filter: RangeFilterConfig = Field(default_factory=RangeFilterConfig, description="Range filtering of each scan.")
+    grid: GridConfig = Field(default_factory=GridConfig, description="Submap grids.")
+    submaps: SubmapConfig = Field(default_factory=SubmapConfig, description="Submap life cycle.")
+    motion_filter: MotionFilterConfig = Field(default_factory=MotionFilterConfig, description="Insertion gate.")
+    real_time_matcher: RealTimeMatcherConfig = Field(default_factory=RealTimeMatcherConfig, description="Local scan matching.")
+    refine: RefineConfig = Field(default_factory=RefineConfig, description="Sub-cell refinement.")
+    map: MapConfig = Field(default_factory=MapConfig, description="Exported map.")
+
+    @field_validator("grid")
+    @classmethod
+    def _grid(cls, g: GridConfig):
+        if not (g.min_probability < g.miss_probability < 0.5 < g.hit_probability < g.max_probability):
+            raise ValueError("need min_probability < miss_probability < 0.5 < hit_probability < max_probability")
+        return g
+
+    @property
+    def max_angle_rad(self) -> float:
+        return math.radians(self.motion_filter.max_angle_deg)
+
+
+def _format_error(err: dict) -> str:
+    key = ".".join(str(p) for p in err.get("loc", ()))
+    if err.get("type") == "extra_forbidden":
+        return f"unknown key '{key}'"
+    return f"key '{key}': {err.get('msg')}"
+
+
+def config_from_dict(data: dict[str, Any] | None, source: str = "config") -> SlamConfig:
+    try:
+        return SlamConfig.model_validate(data or {})
+    except ValidationError as e:
+        first = e.errors()[0]
+        more = f" (and {e.error_count() - 1} more)" if e.error_count() > 1 else ""
+        raise ConfigError(f"{source}: {_format_error(first)}{more}") from None
+
+
+def load_config(path: str | Path | None) -> SlamConfig:
+    """Load a YAML config; missing keys take defaults, unknown keys are an error."""
+    if path is None:
+        return SlamConfig()
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such config file") from None
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot read: {e.strerror}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f":{mark.line + 1}" if mark is not None else ""
+        raise ConfigError(f"{path}{where}: not valid YAML ({getattr(e, 'problem', e)})") from None
+    if data is not None and not isinstance(data, dict):
+        raise ConfigError(f"{path}: the top level must be a mapping of sections")
+    return config_from_dict(data, str(path))
+
+
+def dump_config(cfg: SlamConfig | None = None) -> str:
+    """Every option with its value and description, as commented YAML."""
+    cfg = cfg or SlamConfig()
+    lines = ["# slam2d configuration: every option, its default and what it does.",
+             "# Generated by `slam2d dump-config`; sensor facts come from the data, not from here.", ""]
+    for name, finfo in SlamConfig.model_fields.items():
+        section = getattr(cfg, name)
+        lines.append(f"# {finfo.description}")
+        lines.append(f"{name}:")
+        for key, sinfo in type(section).model_fields.items():
+            lines.append(f"  # {sinfo.description}")
+            value = yaml.safe_dump({key: getattr(section, key)}, default_flow_style=True).strip()[1:-1]
+            lines.append(f"  {value}")
+        lines.append("")
+    return "\n".join(lines)

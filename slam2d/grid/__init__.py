@@ -1,0 +1,1 @@
+"""Occupancy grids: log-odds probability grid, range insertion, submaps, map export."""

@@ -1,0 +1,108 @@
+"""Log-odds probability grid with map limits that grow as the robot explores.
+
+Cartographer's ``ProbabilityGrid`` + ``ProbabilityGridRangeDataInserter2D`` (Hess et al.
+2016, Sec. IV): hits and misses update cells in log-odds, clamped; unknown cells are kept
+apart from free ones by a ``known`` mask.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from slam2d.grid import _kernels
+
+
+def logit(p: float) -> float:
+    return math.log(p / (1.0 - p))
+
+
+class ProbabilityGrid:
+    """Cells ``[row, col]``; cell (0, 0)'s lower-left corner is at ``origin`` (x, y) in the grid's frame."""
+
+    GROW_MARGIN = 64  # cells added beyond the requested bounds when the grid grows
+
+    def __init__(self, resolution: float, hit_probability=0.55, miss_probability=0.49,
+                 min_probability=0.12, max_probability=0.97, origin=(0.0, 0.0), shape=(0, 0)):
+        self.resolution = float(resolution)
+        self.hit_delta = logit(hit_probability)
+        self.miss_delta = logit(miss_probability)
+        self.lo_min = logit(min_probability)
+        self.lo_max = logit(max_probability)
+        self.min_probability = min_probability
+        self.origin = np.array(origin, dtype=float)
+        self.logodds = np.zeros(shape, dtype=np.float32)
+        self.known = np.zeros(shape, dtype=np.uint8)
+        self.stamp = np.zeros(shape, dtype=np.int32)
+        self.scan_id = 0
+
+    @classmethod
+    def from_config(cls, grid_cfg, resolution=None):
+        return cls(resolution or grid_cfg.resolution, grid_cfg.hit_probability, grid_cfg.miss_probability,
+                   grid_cfg.min_probability, grid_cfg.max_probability)
+
+    @property
+    def shape(self):
+        return self.logodds.shape
+
+    def ensure_contains(self, xmin, ymin, xmax, ymax):
+        """Grow the grid (keeping its content and cell alignment) so the box fits."""
+        res = self.resolution
+        rows, cols = self.shape
+        if rows and cols:
+            c0 = math.floor((xmin - self.origin[0]) / res)
+            r0 = math.floor((ymin - self.origin[1]) / res)
+            c1 = math.floor((xmax - self.origin[0]) / res)
+            r1 = math.floor((ymax - self.origin[1]) / res)
+            if c0 >= 0 and r0 >= 0 and c1 < cols and r1 < rows:
+                return
+            m = self.GROW_MARGIN
+            add_left = m - c0 if c0 < 0 else 0
+            add_bottom = m - r0 if r0 < 0 else 0
+            add_right = c1 - cols + 1 + m if c1 >= cols else 0
+            add_top = r1 - rows + 1 + m if r1 >= rows else 0
+            new_shape = (rows + add_bottom + add_top, cols + add_left + add_right)
+            for name, dtype in (("logodds", np.float32), ("known", np.uint8), ("stamp", np.int32)):
+                old = getattr(self, name)
+                new = np.zeros(new_shape, dtype=dtype)
+                new[add_bottom:add_bottom + rows, add_left:add_left + cols] = old
+                setattr(self, name, new)
+            self.origin = self.origin - np.array([add_left * res, add_bottom * res])
+        else:
+            m = self.GROW_MARGIN
+            self.origin = np.array([math.floor(xmin / res) - m, math.floor(ymin / res) - m], dtype=float) * res
+            shape = (int(math.floor(ymax / res) - math.floor(ymin / res)) + 2 * m + 1,
+                     int(math.floor(xmax / res) - math.floor(xmin / res)) + 2 * m + 1)
+            self.logodds = np.zeros(shape, dtype=np.float32)
+            self.known = np.zeros(shape, dtype=np.uint8)
+            self.stamp = np.zeros(shape, dtype=np.int32)
+
+    def insert(self, origin_xy, hits: np.ndarray, misses: np.ndarray | None = None):
+        """Insert one scan: rays from ``origin_xy`` to hit points (N, 2) and to free-space ray ends (M, 2), grid frame."""
+        ends = hits if misses is None or len(misses) == 0 else np.vstack([hits, misses])
+        if len(ends) == 0:
+            return
+        pts = np.vstack([ends, np.asarray(origin_xy, dtype=float)[None, :]])
+        self.ensure_contains(pts[:, 0].min(), pts[:, 1].min(), pts[:, 0].max(), pts[:, 1].max())
+        is_hit = np.zeros(len(ends), dtype=np.bool_)
+        is_hit[: len(hits)] = True
+        cells = (ends - self.origin) / self.resolution
+        o = (np.asarray(origin_xy, dtype=float) - self.origin) / self.resolution
+        self.scan_id += 1
+        _kernels.insert_rays(self.logodds, self.known, self.stamp, self.scan_id, float(o[0]), float(o[1]),
+                             np.ascontiguousarray(cells), is_hit, self.hit_delta, self.miss_delta,
+                             self.lo_min, self.lo_max)
+
+    def probability(self, unknown_value: float = 0.5) -> np.ndarray:
+        out = np.empty(self.shape, dtype=np.float32)
+        if out.size:
+            _kernels.logodds_to_probability(self.logodds, self.known, np.float32(unknown_value), out)
+        return out
+
+    def known_bounds(self):
+        """(r0, r1, c0, c1) slice bounds of the known cells, or None."""
+        rows = np.flatnonzero(self.known.any(axis=1))
+        if rows.size == 0:
+            return None
+        cols = np.flatnonzero(self.known.any(axis=0))
+        return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1

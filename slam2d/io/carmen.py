@@ -1,0 +1,259 @@
+"""CARMEN log reader (``.clf``/``.log``, plain, ``.gz``, ``.bz2``).
+
+Message formats (CARMEN 0.7 logger):
+
+* ``FLASER n r1..rn x y theta odom_x odom_y odom_theta ipc_ts host logger_ts``: ``n``
+  beams spread over 180°, first beam on the right (−90°); 180/360 beams step π/n, 181/361
+  beams step π/(n−1). ``x y theta`` is the laser pose, ``odom_*`` the robot pose, both in
+  the odometry frame; their difference is the laser mount.
+* ``ROBOTLASER1 type start_angle fov resolution max_range accuracy remission_mode n r1..rn
+  m i1..im laser_x laser_y laser_theta robot_x robot_y robot_theta tv rv fwd side turn
+  ipc_ts host logger_ts``.
+* ``ODOM x y theta tv rv accel ipc_ts host logger_ts``, ``PARAM name value ...``, ``#`` comments;
+  other messages (RAWLASER*, TRUEPOS, NEFF, SYNC, ...) are skipped.
+
+The scan timestamp is ``ipc_ts`` (the Freiburg benchmark relations use it). Readings at
+or above the sensor's no-return value are flagged invalid and never become hits. The
+no-return value is a fact of the data: the log-wide maximum reading when it repeats (a
+saturated laser writes the same number, e.g. 81.83, 81.91 or 50.0 m), or the maximum
+range stated in a ROBOTLASER1 line. A streaming first pass finds it, so memory stays
+constant however long the log is.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from slam2d.errors import InputError
+from slam2d.geometry import between
+from slam2d.io._text import iter_lines
+from slam2d.types import Scan
+
+log = logging.getLogger(__name__)
+
+#: a scan stamped earlier than its predecessor by up to this much is tolerated and counted
+#: (the Intel log has such reorderings, up to 0.9 s); a larger jump back is an error
+MAX_TIME_REVERSAL = 1.0
+#: the log-wide maximum reading is a no-return value when at least this share of beams has it
+SATURATION_MIN_SHARE = 1e-4
+SATURATION_MIN_COUNT = 5
+
+_LASER_TYPES = ("FLASER", "RLASER", "ROBOTLASER1")
+
+
+@dataclass
+class _Parsed:
+    kind: str
+    timestamp: float
+    timestamp_text: str
+    ranges: np.ndarray
+    angle_min: float
+    angle_increment: float
+    laser_pose: np.ndarray
+    robot_pose: np.ndarray
+    max_range: float | None  # from the line itself (ROBOTLASER1)
+    intensities: np.ndarray | None = None
+
+
+@dataclass
+class CarmenFacts:
+    """What a first pass over the log learns."""
+
+    num_scans: int = 0
+    num_odom: int = 0
+    max_reading: float = -math.inf
+    max_reading_count: int = 0
+    num_readings: int = 0
+    line_max_range: float | None = None
+    params: dict = field(default_factory=dict)
+
+    @property
+    def no_return_value(self) -> float | None:
+        cands = []
+        if self.line_max_range is not None:
+            cands.append(self.line_max_range)
+        if self.max_reading_count >= max(SATURATION_MIN_COUNT, SATURATION_MIN_SHARE * self.num_readings):
+            cands.append(self.max_reading)
+        return min(cands) if cands else None
+
+
+def _floats(path, lineno, tokens, what):
+    try:
+        return [float(t) for t in tokens]
+    except ValueError:
+        for t in tokens:
+            try:
+                float(t)
+            except ValueError:
+                raise InputError(path, f"non-numeric {what} {t!r}", line=lineno) from None
+        raise
+
+
+def _int(path, lineno, token, what):
+    try:
+        return int(token)
+    except ValueError:
+        raise InputError(path, f"{what} must be an integer, found {token!r}", line=lineno) from None
+
+
+def flaser_geometry(n: int) -> tuple[float, float]:
+    """(angle_min, angle_increment) of an n-beam FLASER line over 180°."""
+    step = math.pi / (n - 1) if n % 2 == 1 else math.pi / n
+    return -math.pi / 2, step
+
+
+def _parse_laser(path, lineno, parts) -> _Parsed:
+    kind = parts[0]
+    if kind in ("FLASER", "RLASER"):
+        if len(parts) < 2:
+            raise InputError(path, f"truncated {kind} line: no beam count", line=lineno)
+        n = _int(path, lineno, parts[1], "beam count")
+        if n <= 0:
+            raise InputError(path, f"beam count must be positive, found {n}", line=lineno)
+        need = 2 + n + 7
+        if len(parts) < need or len(parts) > need + 2:
+            raise InputError(path, f"{kind} declares {n} readings, so it needs {need}..{need + 2} fields; "
+                             f"the line has {len(parts)} (beam count mismatch or truncated line)", line=lineno)
+        ranges = np.array(_floats(path, lineno, parts[2:2 + n], "range reading"), dtype=np.float64)
+        tail = _floats(path, lineno, parts[2 + n:2 + n + 7], "pose/timestamp field")
+        a0, da = flaser_geometry(n)
+        return _Parsed(kind, tail[6], parts[2 + n + 6], ranges, a0, da,
+                       np.array(tail[0:3]), np.array(tail[3:6]), None)
+    # ROBOTLASER1
+    if len(parts) < 9:
+        raise InputError(path, "truncated ROBOTLASER1 line", line=lineno)
+    head = _floats(path, lineno, parts[2:8], "ROBOTLASER1 header field")
+    start, _fov, res, max_range = head[0], head[1], head[2], head[3]
+    n = _int(path, lineno, parts[8], "beam count")
+    if n <= 0:
+        raise InputError(path, f"beam count must be positive, found {n}", line=lineno)
+    if len(parts) < 9 + n + 1:
+        raise InputError(path, f"ROBOTLASER1 declares {n} readings but the line is truncated", line=lineno)
+    ranges = np.array(_floats(path, lineno, parts[9:9 + n], "range reading"), dtype=np.float64)
+    m = _int(path, lineno, parts[9 + n], "remission count")
+    base = 10 + n + m
+    need = base + 12
+    if m < 0 or len(parts) < need or len(parts) > need + 2:
+        raise InputError(path, f"ROBOTLASER1 with {n} readings and {m} remissions needs {need}..{need + 2} fields; "
+                         f"the line has {len(parts)}", line=lineno)
+    rem = np.array(_floats(path, lineno, parts[10 + n:base], "remission"), dtype=np.float32) if m == n else None
+    tail = _floats(path, lineno, parts[base:base + 12], "pose/timestamp field")
+    if not (res > 0 and math.isfinite(res)):
+        raise InputError(path, f"angular resolution must be positive, found {res}", line=lineno)
+    return _Parsed(kind, tail[11], parts[base + 11], ranges, start, res, np.array(tail[0:3]),
+                   np.array(tail[3:6]), max_range if max_range > 0 else None, rem)
+
+
+class CarmenLog:
+    """Lazy iterator over the scans of a CARMEN log."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self._facts: CarmenFacts | None = None
+
+    def num_scans(self) -> int:
+        return self.facts().num_scans
+
+    # ---- first pass
+    def facts(self) -> CarmenFacts:
+        if self._facts is None:
+            self._facts = self._survey()
+        return self._facts
+
+    def _survey(self) -> CarmenFacts:
+        f = CarmenFacts()
+        for lineno, kind, parts in self._records():
+            if kind == "PARAM":
+                if len(parts) >= 3:
+                    f.params[parts[1]] = parts[2]
+                continue
+            if kind == "ODOM":
+                self._parse_odom(lineno, parts)
+                f.num_odom += 1
+                continue
+            p = _parse_laser(self.path, lineno, parts)
+            f.num_scans += 1
+            r = p.ranges[np.isfinite(p.ranges)]
+            f.num_readings += p.ranges.size
+            if p.max_range is not None:
+                f.line_max_range = p.max_range if f.line_max_range is None else min(f.line_max_range, p.max_range)
+            if r.size:
+                top = float(r.max())
+                if top > f.max_reading:
+                    f.max_reading, f.max_reading_count = top, int(np.count_nonzero(r == top))
+                elif top == f.max_reading:
+                    f.max_reading_count += int(np.count_nonzero(r == top))
+        if f.num_scans == 0:
+            raise InputError(self.path, "no laser scans (FLASER, RLASER or ROBOTLASER1 lines) in the file")
+        return f
+
+    def _records(self):
+        for lineno, line in iter_lines(self.path):
+            parts = line.split()
+            if not parts or parts[0].startswith("#"):
+                continue
+            kind = parts[0]
+            if kind in _LASER_TYPES or kind in ("ODOM", "PARAM"):
+                yield lineno, kind, parts
+
+    def _parse_odom(self, lineno, parts):
+        if len(parts) < 8:
+            raise InputError(self.path, f"truncated ODOM line: {len(parts)} fields, needs at least 8", line=lineno)
+        vals = _floats(self.path, lineno, parts[1:8], "ODOM field")
+        if not all(math.isfinite(v) for v in vals):
+            raise InputError(self.path, "ODOM line has a non-finite value", line=lineno)
+        return vals
+
+    # ---- second pass
+    def __iter__(self):
+        facts = self.facts()
+        no_return = facts.no_return_value
+        prev_t = None
+        index = 0
+        for lineno, kind, parts in self._records():
+            if kind != "ODOM" and kind != "PARAM":
+                p = _parse_laser(self.path, lineno, parts)
+                yield self._to_scan(p, lineno, index, no_return, prev_t)
+                prev_t = p.timestamp if prev_t is None else max(prev_t, p.timestamp)
+                index += 1
+
+    def _to_scan(self, p: _Parsed, lineno: int, index: int, no_return, prev_t) -> Scan:
+        path = self.path
+        if not math.isfinite(p.timestamp):
+            raise InputError(path, f"timestamp {p.timestamp_text!r} is not finite", line=lineno)
+        if prev_t is not None and p.timestamp < prev_t - MAX_TIME_REVERSAL:
+            raise InputError(path, f"timestamp {p.timestamp_text} goes back {prev_t - p.timestamp:.3f} s "
+                             f"(more than {MAX_TIME_REVERSAL} s) behind an earlier scan", line=lineno)
+        if not (np.all(np.isfinite(p.laser_pose)) and np.all(np.isfinite(p.robot_pose))):
+            raise InputError(path, "pose field is not finite", line=lineno)
+        r = p.ranges
+        if np.any(r < 0):  # -inf included
+            i = int(np.flatnonzero(r < 0)[0])
+            raise InputError(path, f"negative range reading {r[i]} (beam {i})", line=lineno)
+        nan = np.isnan(r)
+        if nan.all():
+            raise InputError(path, "every range reading is NaN", line=lineno)
+        no_ret = np.isposinf(r)
+        if no_return is not None:
+            no_ret |= r >= no_return
+        valid = ~nan & ~no_ret & (r > 0)
+        range_max = float(no_return) if no_return is not None else float(np.nanmax(np.where(np.isinf(r), np.nan, r))) if np.any(np.isfinite(r)) else 0.0
+        return Scan(
+            timestamp=p.timestamp,
+            timestamp_text=p.timestamp_text,
+            ranges=r.astype(np.float32),
+            angle_min=p.angle_min,
+            angle_increment=p.angle_increment,
+            range_min=0.0,
+            range_max=range_max,
+            valid=valid,
+            no_return=no_ret,
+            index=index,
+            intensities=p.intensities,
+            odom_pose=p.robot_pose,
+            laser_offset=between(p.robot_pose, p.laser_pose),
+        )

@@ -1,0 +1,33 @@
+"""Observer interface: how the pipeline reports what it does without knowing who listens.
+
+Visualization (Rerun), progress bars and recorders implement the methods they need; the
+core never imports any of them.
+"""
+from __future__ import annotations
+
+
+class Observer:
+    """Every method is optional; the default does nothing."""
+
+    def on_start(self, info: dict) -> None: ...
+
+    def on_scan(self, scan, result) -> None: ...
+
+    def on_submap_finished(self, submap) -> None: ...
+
+    def on_optimized(self, mapper) -> None: ...
+
+    def on_finish(self, mapper) -> None: ...
+
+
+class Observers(Observer):
+    """Fans every call out to a list of observers."""
+
+    def __init__(self, observers=()):
+        self.observers = list(observers)
+
+    def __getattribute__(self, name):
+        if name.startswith("on_"):
+            obs = object.__getattribute__(self, "observers")
+            return lambda *a, **k: [getattr(o, name)(*a, **k) for o in obs]
+        return object.__getattribute__(self, name)

@@ -1,0 +1,99 @@
+"""``slam2d info`` and the run's ``summary.json``."""
+from __future__ import annotations
+
+import math
+import platform
+import resource
+import sys
+
+import numpy as np
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("slam2d")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def describe(source) -> dict:
+    """One streaming pass over the scans."""
+    n = 0
+    t_min, t_max = math.inf, -math.inf
+    beams = set()
+    a_min, a_max = math.inf, -math.inf
+    r_min, r_max = math.inf, -math.inf
+    hit_max = 0.0
+    invalid = no_ret = nan = readings = reversals = with_odom = with_gt = 0
+    last = None
+    offset = None
+    for s in source:
+        n += 1
+        t_min, t_max = min(t_min, s.timestamp), max(t_max, s.timestamp)
+        if last is not None and s.timestamp < last:
+            reversals += 1
+        last = s.timestamp
+        beams.add(s.num_beams)
+        a_min = min(a_min, s.angle_min)
+        a_max = max(a_max, s.angle_min + (s.num_beams - 1) * s.angle_increment)
+        r_min, r_max = min(r_min, s.range_min), max(r_max, s.range_max)
+        readings += s.num_beams
+        invalid += int(s.num_beams - np.count_nonzero(s.valid))
+        nan += int(np.count_nonzero(np.isnan(s.ranges)))
+        if s.valid.any():
+            hit_max = max(hit_max, float(s.ranges[s.valid].max()))
+        if s.no_return is not None:
+            no_ret += int(np.count_nonzero(s.no_return))
+        with_odom += s.odom_pose is not None
+        with_gt += s.ground_truth is not None
+        offset = s.laser_offset
+    return {
+        "scans": n,
+        "duration_s": round(t_max - t_min, 6),
+        "first_timestamp": t_min,
+        "last_timestamp": t_max,
+        "beams": sorted(beams)[0] if len(beams) == 1 else sorted(beams),
+        "angle_min_deg": round(math.degrees(a_min), 4),
+        "angle_max_deg": round(math.degrees(a_max), 4),
+        "range_min_m": r_min,
+        "range_max_m": r_max,
+        "max_hit_range_m": round(hit_max, 4),
+        "readings": readings,
+        "invalid_readings": invalid,
+        "no_return_readings": no_ret,
+        "nan_readings": nan,
+        "has_odometry": with_odom == n,
+        "has_ground_truth": with_gt == n,
+        "laser_offset": [round(float(v), 6) for v in offset] if offset is not None else None,
+        "timestamp_reversals": reversals,
+    }
+
+
+def peak_rss_mb() -> float:
+    kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return round(kb / 1024 if sys.platform != "darwin" else kb / 1024 / 1024, 1)
+
+
+def run_summary(input_path, mode, result, wall_s, map_s, tracker) -> dict:
+    duration = float(result.times.max() - result.times.min()) if len(result.times) > 1 else 0.0
+    s = {
+        "slam2d_version": _version(),
+        "python": platform.python_version(),
+        "input": str(input_path),
+        "mode": mode,
+        "scans": len(result.stamps),
+        "duration_s": round(duration, 6),
+        "wall_time_s": round(wall_s, 3),
+        "real_time_factor": round(duration / wall_s, 3) if wall_s > 0 else None,
+        "peak_rss_mb": peak_rss_mb(),
+        "counts": result.counts,
+        "timings": {**result.timings, "map_build_s": round(map_s, 3)},
+    }
+    extra = getattr(tracker, "summary", None)
+    if callable(extra):
+        s.update(extra())
+    if getattr(result, "ground_truth_ate", None) is not None:
+        s["ate_vs_ground_truth"] = result.ground_truth_ate
+    return s
