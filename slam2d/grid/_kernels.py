@@ -12,26 +12,37 @@ from numba import njit
 
 
 @njit(cache=True)
-def _apply(logodds, known, stamp, r, c, scan_id, delta, lo_min, lo_max):
+def _apply(logodds, known, prob, stamp, r, c, scan_id, delta, lo_min, lo_max, flips, n_flips):
     if stamp[r, c] == scan_id:
         return
     stamp[r, c] = scan_id
-    v = logodds[r, c] + delta
+    old = logodds[r, c]
+    v = old + delta
     if v < lo_min:
         v = lo_min
     elif v > lo_max:
         v = lo_max
     logodds[r, c] = v
     known[r, c] = 1
+    prob[r, c] = 1.0 / (1.0 + math.exp(-v))
+    if (old > 0.0) != (v > 0.0):  # the cell changed between occupied and not occupied
+        k = n_flips[0]
+        if k < flips.shape[0]:
+            flips[k, 0] = r
+            flips[k, 1] = c
+        n_flips[0] = k + 1
 
 
 @njit(cache=True)
-def insert_rays(logodds, known, stamp, scan_id, ox, oy, ends, is_hit, hit_delta, miss_delta, lo_min, lo_max):
+def insert_rays(logodds, known, prob, stamp, scan_id, ox, oy, ends, is_hit, hit_delta, miss_delta, lo_min, lo_max,
+                flips, n_flips):
     """Insert rays from (ox, oy) to ``ends`` (M, 2), all in cell units (continuous, lower-left origin).
 
     Endpoints with ``is_hit`` get one hit update per scan even when several rays end in the
-    same cell; every cell a ray crosses before its end gets one miss update unless it was
-    already updated by this scan (hits are applied first, as in Cartographer). Rays whose
+    same cell; ``prob`` mirrors each updated cell as a probability. Every cell a ray crosses before its end gets one miss update unless it was
+    already updated by this scan (hits are applied first, as in Cartographer). Cells that
+    cross between occupied (log-odds > 0) and not are written to ``flips`` (their count to
+    ``n_flips[0]``, which may exceed the buffer: then the caller recomputes what depends on it). Rays whose
     ``is_hit`` is False mark free space along the whole ray, the end cell included.
     """
     rows, cols = logodds.shape
@@ -41,7 +52,7 @@ def insert_rays(logodds, known, stamp, scan_id, ox, oy, ends, is_hit, hit_delta,
             c = int(math.floor(ends[i, 0]))
             r = int(math.floor(ends[i, 1]))
             if 0 <= r < rows and 0 <= c < cols:
-                _apply(logodds, known, stamp, r, c, scan_id, hit_delta, lo_min, lo_max)
+                _apply(logodds, known, prob, stamp, r, c, scan_id, hit_delta, lo_min, lo_max, flips, n_flips)
     for i in range(m):
         ex = ends[i, 0]
         ey = ends[i, 1]
@@ -70,10 +81,10 @@ def insert_rays(logodds, known, stamp, scan_id, ox, oy, ends, is_hit, hit_delta,
         for _ in range(n_steps + 1):
             if cx == tx and cy == ty:
                 if not is_hit[i] and 0 <= cy < rows and 0 <= cx < cols:
-                    _apply(logodds, known, stamp, cy, cx, scan_id, miss_delta, lo_min, lo_max)
+                    _apply(logodds, known, prob, stamp, cy, cx, scan_id, miss_delta, lo_min, lo_max, flips, n_flips)
                 break
             if 0 <= cy < rows and 0 <= cx < cols:
-                _apply(logodds, known, stamp, cy, cx, scan_id, miss_delta, lo_min, lo_max)
+                _apply(logodds, known, prob, stamp, cy, cx, scan_id, miss_delta, lo_min, lo_max, flips, n_flips)
             if t_max_x < t_max_y:
                 t_max_x += t_delta_x
                 cx += step_x
@@ -92,3 +103,56 @@ def logodds_to_probability(logodds, known, unknown_value, out):
             else:
                 out[r, c] = unknown_value
     return out
+
+
+@njit(cache=True)
+def stamp_field(field, logodds, flips, n, kernel, radius):
+    """Update a likelihood field after occupancy flips, exactly.
+
+    ``field[q] = max over occupied cells o with |q − o| ≤ radius of kernel[o − q]``. A cell
+    that became occupied raises its neighbourhood to the kernel; around a cell that stopped
+    being occupied every cell is recomputed from the occupied cells near it.
+    """
+    rows, cols = field.shape
+    for k in range(n):
+        r = flips[k, 0]
+        c = flips[k, 1]
+        if logodds[r, c] > 0.0:
+            for dr in range(-radius, radius + 1):
+                rr = r + dr
+                if rr < 0 or rr >= rows:
+                    continue
+                for dc in range(-radius, radius + 1):
+                    cc = c + dc
+                    if cc < 0 or cc >= cols:
+                        continue
+                    v = kernel[dr + radius, dc + radius]
+                    if v > field[rr, cc]:
+                        field[rr, cc] = v
+    for k in range(n):
+        r = flips[k, 0]
+        c = flips[k, 1]
+        if logodds[r, c] > 0.0:
+            continue
+        for dr in range(-radius, radius + 1):
+            rr = r + dr
+            if rr < 0 or rr >= rows:
+                continue
+            for dc in range(-radius, radius + 1):
+                cc = c + dc
+                if cc < 0 or cc >= cols:
+                    continue
+                best = 0.0
+                for er in range(-radius, radius + 1):
+                    r2 = rr + er
+                    if r2 < 0 or r2 >= rows:
+                        continue
+                    for ec in range(-radius, radius + 1):
+                        c2 = cc + ec
+                        if c2 < 0 or c2 >= cols:
+                            continue
+                        if logodds[r2, c2] > 0.0:
+                            v = kernel[er + radius, ec + radius]
+                            if v > best:
+                                best = v
+                field[rr, cc] = best

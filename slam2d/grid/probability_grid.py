@@ -10,11 +10,22 @@ import math
 
 import numpy as np
 
+from scipy.ndimage import distance_transform_edt
+
 from slam2d.grid import _kernels
 
 
 def logit(p: float) -> float:
     return math.log(p / (1.0 - p))
+
+
+def field_kernel(sigma: float, resolution: float, radius: int) -> np.ndarray:
+    """exp(−d²/2σ²) over a (2R+1)² window of cell-centre distances d, zero beyond R cells."""
+    k = np.arange(-radius, radius + 1) * resolution
+    d = np.hypot(k[None, :], k[:, None])
+    out = np.exp(-0.5 * (d / sigma) ** 2)
+    out[d > radius * resolution + 1e-9] = 0.0
+    return out.astype(np.float32)
 
 
 class ProbabilityGrid:
@@ -23,23 +34,40 @@ class ProbabilityGrid:
     GROW_MARGIN = 64  # cells added beyond the requested bounds when the grid grows
 
     def __init__(self, resolution: float, hit_probability=0.55, miss_probability=0.49,
-                 min_probability=0.12, max_probability=0.97, origin=(0.0, 0.0), shape=(0, 0)):
+                 min_probability=0.12, max_probability=0.97, origin=(0.0, 0.0), shape=(0, 0),
+                 unknown_probability: float | None = None, field_sigma: float | None = None):
         self.resolution = float(resolution)
         self.hit_delta = logit(hit_probability)
         self.miss_delta = logit(miss_probability)
         self.lo_min = logit(min_probability)
         self.lo_max = logit(max_probability)
         self.min_probability = min_probability
+        # what matching reads for never-observed cells (Cartographer: the minimum probability)
+        self.unknown_probability = min_probability if unknown_probability is None else unknown_probability
         self.origin = np.array(origin, dtype=float)
         self.logodds = np.zeros(shape, dtype=np.float32)
         self.known = np.zeros(shape, dtype=np.uint8)
+        self.prob = np.full(shape, self.unknown_probability, dtype=np.float32)
         self.stamp = np.zeros(shape, dtype=np.int32)
         self.scan_id = 0
+        # likelihood field: Gaussian of the distance to the nearest occupied cell, cut at 3 sigma
+        self.field_sigma = field_sigma
+        self.field = np.zeros(shape if field_sigma else (0, 0), dtype=np.float32)
+        if field_sigma:
+            self.field_radius = max(1, int(math.ceil(3.0 * field_sigma / self.resolution)))
+            self.field_kernel = field_kernel(field_sigma, self.resolution, self.field_radius)
 
     @classmethod
-    def from_config(cls, grid_cfg, resolution=None):
+    def from_config(cls, grid_cfg, resolution=None, field_sigma=None):
         return cls(resolution or grid_cfg.resolution, grid_cfg.hit_probability, grid_cfg.miss_probability,
-                   grid_cfg.min_probability, grid_cfg.max_probability)
+                   grid_cfg.min_probability, grid_cfg.max_probability, field_sigma=field_sigma)
+
+    def _arrays(self):
+        out = [("logodds", np.float32, 0), ("known", np.uint8, 0), ("stamp", np.int32, 0),
+               ("prob", np.float32, self.unknown_probability)]
+        if self.field_sigma:
+            out.append(("field", np.float32, 0))
+        return out
 
     @property
     def shape(self):
@@ -62,9 +90,9 @@ class ProbabilityGrid:
             add_right = c1 - cols + 1 + m if c1 >= cols else 0
             add_top = r1 - rows + 1 + m if r1 >= rows else 0
             new_shape = (rows + add_bottom + add_top, cols + add_left + add_right)
-            for name, dtype in (("logodds", np.float32), ("known", np.uint8), ("stamp", np.int32)):
+            for name, dtype, fill in self._arrays():
                 old = getattr(self, name)
-                new = np.zeros(new_shape, dtype=dtype)
+                new = np.full(new_shape, fill, dtype=dtype)
                 new[add_bottom:add_bottom + rows, add_left:add_left + cols] = old
                 setattr(self, name, new)
             self.origin = self.origin - np.array([add_left * res, add_bottom * res])
@@ -73,9 +101,8 @@ class ProbabilityGrid:
             self.origin = np.array([math.floor(xmin / res) - m, math.floor(ymin / res) - m], dtype=float) * res
             shape = (int(math.floor(ymax / res) - math.floor(ymin / res)) + 2 * m + 1,
                      int(math.floor(xmax / res) - math.floor(xmin / res)) + 2 * m + 1)
-            self.logodds = np.zeros(shape, dtype=np.float32)
-            self.known = np.zeros(shape, dtype=np.uint8)
-            self.stamp = np.zeros(shape, dtype=np.int32)
+            for name, dtype, fill in self._arrays():
+                setattr(self, name, np.full(shape, fill, dtype=dtype))
 
     def insert(self, origin_xy, hits: np.ndarray, misses: np.ndarray | None = None):
         """Insert one scan: rays from ``origin_xy`` to hit points (N, 2) and to free-space ray ends (M, 2), grid frame."""
@@ -89,9 +116,27 @@ class ProbabilityGrid:
         cells = (ends - self.origin) / self.resolution
         o = (np.asarray(origin_xy, dtype=float) - self.origin) / self.resolution
         self.scan_id += 1
-        _kernels.insert_rays(self.logodds, self.known, self.stamp, self.scan_id, float(o[0]), float(o[1]),
+        flips = np.empty((4 * len(ends) + 256, 2), dtype=np.int32)
+        n_flips = np.zeros(1, dtype=np.int64)
+        _kernels.insert_rays(self.logodds, self.known, self.prob, self.stamp, self.scan_id, float(o[0]), float(o[1]),
                              np.ascontiguousarray(cells), is_hit, self.hit_delta, self.miss_delta,
-                             self.lo_min, self.lo_max)
+                             self.lo_min, self.lo_max, flips, n_flips)
+        if self.field_sigma:
+            n = int(n_flips[0])
+            if n > len(flips):
+                self.field = self.compute_field()
+            else:
+                _kernels.stamp_field(self.field, self.logodds, flips, n, self.field_kernel, self.field_radius)
+
+    def compute_field(self) -> np.ndarray:
+        """The likelihood field from scratch (exact Euclidean distance transform)."""
+        occ = self.logodds > 0
+        if not occ.any():
+            return np.zeros(self.shape, dtype=np.float32)
+        d = distance_transform_edt(~occ) * self.resolution
+        f = np.exp(-0.5 * (d / self.field_sigma) ** 2)
+        f[d > self.field_radius * self.resolution + 1e-9] = 0.0
+        return f.astype(np.float32)
 
     def probability(self, unknown_value: float = 0.5) -> np.ndarray:
         out = np.empty(self.shape, dtype=np.float32)
