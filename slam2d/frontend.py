@@ -88,7 +88,7 @@ class LocalSlam:
                 pose, score = m.pose, m.score
                 if self.cfg.refine.enabled:
                     r = self.cfg.refine
-                    pose, _ = refine(grid, pose, points, r.occupied_space_weight, r.translation_weight, r.rotation_weight,
+                    pose, _ = refine(submap.probability_grid(), pose, points, r.occupied_space_weight, r.translation_weight, r.rotation_weight,
                                      r.max_iterations)
                     timings["refine"] = (time.perf_counter() - t2) * 1e3
                 self.num_matched += 1

@@ -30,6 +30,11 @@ class Submap:
         g = self.grid
         if g.field_sigma:
             return MatchGrid(g.field, g.origin, g.resolution, 0.0)
+        return self.probability_grid()
+
+    def probability_grid(self) -> MatchGrid:
+        """Hit probabilities (unknown cells at the minimum probability), for sub-cell refinement."""
+        g = self.grid
         return MatchGrid(g.prob, g.origin, g.resolution, g.unknown_probability)
 
     def finish(self):

@@ -93,6 +93,14 @@ def _floats(path, lineno, tokens, what):
         raise
 
 
+def _is_number(token: str) -> bool:
+    try:
+        float(token)
+        return True
+    except ValueError:
+        return False
+
+
 def _int(path, lineno, token, what):
     try:
         return int(token)
@@ -102,7 +110,7 @@ def _int(path, lineno, token, what):
 
 def flaser_geometry(n: int) -> tuple[float, float]:
     """(angle_min, angle_increment) of an n-beam FLASER line over 180°."""
-    step = math.pi / (n - 1) if n % 2 == 1 else math.pi / n
+    step = math.pi / (n - 1) if n % 2 == 1 and n > 1 else math.pi / n
     return -math.pi / 2, step
 
 
@@ -115,6 +123,9 @@ def _parse_laser(path, lineno, parts) -> _Parsed:
         if n <= 0:
             raise InputError(path, f"beam count must be positive, found {n}", line=lineno)
         need = 2 + n + 7
+        if len(parts) >= 11 and not _is_number(parts[-2]) and len(parts) - 11 != n:
+            raise InputError(path, f"beam count mismatch: {kind} declares {n} readings but the line holds "
+                             f"{len(parts) - 11}", line=lineno)
         if len(parts) < need or len(parts) > need + 2:
             raise InputError(path, f"{kind} declares {n} readings, so it needs {need}..{need + 2} fields; "
                              f"the line has {len(parts)} (beam count mismatch or truncated line)", line=lineno)

@@ -137,6 +137,7 @@ def simulate(cfg: SimConfig):
         finite = np.isfinite(r)
         r[finite] += rng.normal(0, cfg.range_sigma, size=int(finite.sum()))
         r = np.maximum(r, 0.05)
+        r[r > cfg.max_range] = np.inf  # noise never pushes a reading past the sensor's range
         r[rng.random(cfg.beams) < cfg.dropout_prob] = np.nan
         ns = i * round(1e9 / cfg.rate_hz)
         sec, nsec = cfg.start_time + ns // 1_000_000_000, ns % 1_000_000_000

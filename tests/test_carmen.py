@@ -1,0 +1,190 @@
+import bz2
+import gzip
+import math
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from slam2d.errors import InputError
+from slam2d.io.carmen import CarmenLog, flaser_geometry
+from slam2d.io.source import open_source
+
+
+def write(tmp_path, text, name="log.clf", opener=open):
+    p = tmp_path / name
+    with opener(p, "wt") as f:
+        f.write(text)
+    return p
+
+
+def test_flaser_fields_and_geometry(tmp_path, flaser_line):
+    text = "# comment\nPARAM robot_frontlaser_offset 0.0 nohost 0\n"
+    text += "ODOM 0.1 0.2 0.3 0 0 0 99.0 nohost 0.1\n"
+    text += flaser_line([1.0, 2.0, 3.0, 4.0], pose=(1.0, 2.0, 0.5), odom=(0.9, 2.0, 0.5), ts="100.123456")
+    text += flaser_line([1.5, 2.5, 3.5, 4.5], pose=(1.1, 2.0, 0.5), odom=(1.0, 2.0, 0.5), ts="100.323456")
+    scans = list(CarmenLog(write(tmp_path, text)))
+    assert len(scans) == 2
+    s = scans[0]
+    assert s.timestamp_text == "100.123456" and s.timestamp == pytest.approx(100.123456)
+    np.testing.assert_array_equal(s.ranges, np.float32([1, 2, 3, 4]))
+    np.testing.assert_allclose(s.odom_pose, [0.9, 2.0, 0.5])
+    # mount = odom⁻¹ ∘ laser: a world offset of 0.1 m along x, seen from a robot heading 0.5 rad
+    np.testing.assert_allclose(s.laser_offset, [0.1 * math.cos(0.5), -0.1 * math.sin(0.5), 0.0], atol=1e-6)
+    assert s.angle_min == pytest.approx(-math.pi / 2)
+    assert s.angle_increment == pytest.approx(math.pi / 4)
+    assert scans[1].index == 1
+
+
+@pytest.mark.parametrize("n, step_deg", [(180, 1.0), (181, 1.0), (360, 0.5), (361, 0.5)])
+def test_flaser_beam_conventions(n, step_deg):
+    a0, da = flaser_geometry(n)
+    assert a0 == pytest.approx(-math.pi / 2)
+    assert math.degrees(da) == pytest.approx(step_deg)
+
+
+def test_robotlaser1(tmp_path):
+    n = 5
+    ranges = " ".join(["1.0", "2.0", "30.0", "4.0", "5.0"])
+    line = (f"ROBOTLASER1 0 -1.5708 3.1416 0.785398 30.0 0.01 0 {n} {ranges} 0 "
+            "1.0 2.0 0.1 0.8 2.0 0.1 0.0 0.0 0.5 0.5 0.0 55.5 host 1.0\n")
+    line2 = (f"ROBOTLASER1 0 -1.0 2.0 0.5 30.0 0.01 0 3 1 2 3 0 "
+             "1.0 2.0 0.1 0.8 2.0 0.1 0.0 0.0 0.5 0.5 0.0 55.7 host 1.2\n")
+    scans = list(CarmenLog(write(tmp_path, line + line2)))
+    s = scans[0]
+    assert s.num_beams == 5 and scans[1].num_beams == 3
+    assert s.angle_min == pytest.approx(-1.5708) and s.angle_increment == pytest.approx(0.785398)
+    assert not s.valid[2] and s.no_return[2]  # at the line's maximum range
+    assert s.valid[[0, 1, 3, 4]].all()
+    np.testing.assert_allclose(s.odom_pose, [0.8, 2.0, 0.1])
+    np.testing.assert_allclose(s.laser_offset[:2], [0.2 * math.cos(0.1), -0.2 * math.sin(0.1)], atol=1e-9)
+    assert s.timestamp == pytest.approx(55.5)
+
+
+def test_no_return_value_is_the_repeated_maximum(tmp_path, flaser_line):
+    lines = [flaser_line([1.0, 81.83, 2.0, 81.83], ts=f"{100 + i}.0") for i in range(10)]
+    scans = list(CarmenLog(write(tmp_path, "".join(lines))))
+    assert all((~s.valid[[1, 3]]).all() and s.valid[[0, 2]].all() for s in scans)
+    assert scans[0].range_max == pytest.approx(81.83)
+
+
+def test_no_saturation_means_every_reading_is_a_hit(tmp_path, flaser_line):
+    lines = [flaser_line([1.0 + i, 2.0, 3.0], ts=f"{100 + i}.0") for i in range(3)]
+    assert all(s.valid.all() for s in CarmenLog(write(tmp_path, "".join(lines))))
+
+
+@pytest.mark.parametrize("opener, name", [(gzip.open, "log.clf.gz"), (bz2.open, "log.clf.bz2"), (open, "log.log")])
+def test_compressed_round_trip(tmp_path, flaser_line, opener, name):
+    text = "".join(flaser_line([1.0, 2.0, 3.0], ts=f"{100 + i}.5") for i in range(4))
+    plain = list(CarmenLog(write(tmp_path, text, "plain.clf")))
+    other = list(open_source(write(tmp_path, text, name, opener)))
+    assert [s.timestamp_text for s in plain] == [s.timestamp_text for s in other]
+    for a, b in zip(plain, other):
+        np.testing.assert_array_equal(a.ranges, b.ranges)
+
+
+def test_odd_reading_is_invalid_not_fatal(tmp_path, flaser_line):
+    scans = list(CarmenLog(write(tmp_path, flaser_line([1.0, "nan", 2.0]))))
+    assert scans[0].valid.tolist() == [True, False, True]
+
+
+def test_small_timestamp_reordering_is_tolerated(tmp_path, flaser_line):
+    text = flaser_line([1.0], ts="100.5") + flaser_line([1.0], ts="100.2") + flaser_line([1.0], ts="100.9")
+    assert [s.timestamp for s in CarmenLog(write(tmp_path, text))] == [100.5, 100.2, 100.9]
+
+
+BAD = {
+    "truncated": ("FLASER 3 1.0 2.0\n", 1, "needs"),
+    "non-numeric range": ("FLASER 3 1.0 abc 2.0 0 0 0 0 0 0 100.0 nohost 0.1\n", 1, "non-numeric range reading 'abc'"),
+    "non-numeric count": ("FLASER x 1.0\n", 1, "beam count must be an integer"),
+    "negative range": ("FLASER 3 1.0 -2.0 2.0 0 0 0 0 0 0 100.0 nohost 0.1\n", 1, "negative range"),
+    "-inf range": ("FLASER 3 1.0 -inf 2.0 0 0 0 0 0 0 100.0 nohost 0.1\n", 1, "negative range"),
+    "all nan": ("FLASER 2 nan nan 0 0 0 0 0 0 100.0 nohost 0.1\n", 1, "NaN"),
+    "beam count mismatch": ("FLASER 4 1.0 2.0 3.0 0 0 0 0 0 0 100.0 nohost 0.1\n", 1, "beam count mismatch"),
+    "nan timestamp": ("FLASER 1 1.0 0 0 0 0 0 0 nan nohost 0.1\n", 1, "not finite"),
+    "inf pose": ("FLASER 1 1.0 inf 0 0 0 0 0 100.0 nohost 0.1\n", 1, "pose field is not finite"),
+    "time backwards": ("FLASER 1 1.0 0 0 0 0 0 0 100.0 nohost 0.1\nFLASER 1 1.0 0 0 0 0 0 0 90.0 nohost 0.2\n", 2,
+                       "goes back"),
+    "bad odom": ("ODOM 1 2\nFLASER 1 1.0 0 0 0 0 0 0 100.0 nohost 0.1\n", 1, "truncated ODOM"),
+    "empty": ("", None, "no laser scans"),
+    "comments only": ("# nothing\nPARAM a b\n", None, "no laser scans"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD))
+def test_bad_input_names_file_and_line(tmp_path, case):
+    text, line, needle = BAD[case]
+    p = write(tmp_path, text)
+    with pytest.raises(InputError) as e:
+        list(CarmenLog(p))
+    msg = str(e.value)
+    assert needle in msg
+    assert msg.startswith(str(p))
+    if line is not None:
+        assert e.value.line == line and f"{p}:{line}:" in msg
+    assert "\n" not in msg
+
+
+def test_corrupt_compressed_files(tmp_path, flaser_line):
+    text = "".join(flaser_line([1.0, 2.0], ts=f"{100 + i}.0") for i in range(2000))
+    for opener, name in ((gzip.open, "x.clf.gz"), (bz2.open, "x.clf.bz2")):
+        p = write(tmp_path, text, name, opener)
+        data = p.read_bytes()
+        p.write_bytes(data[: len(data) // 2])
+        with pytest.raises(InputError) as e:
+            list(CarmenLog(p))
+        assert "corrupt or truncated" in str(e.value) and str(p) in str(e.value)
+        p.write_bytes(b"garbage that is not compressed at all")
+        with pytest.raises(InputError):
+            list(CarmenLog(p))
+
+
+def test_binary_garbage(tmp_path):
+    p = tmp_path / "x.clf"
+    p.write_bytes(bytes(range(256)) * 10)
+    with pytest.raises(InputError):
+        list(CarmenLog(p))
+
+
+def test_missing_and_unknown_files(tmp_path):
+    with pytest.raises(InputError, match="no such file"):
+        open_source(tmp_path / "missing.clf")
+    (tmp_path / "x.txt").write_text("hello")
+    with pytest.raises(InputError, match="unknown file type"):
+        open_source(tmp_path / "x.txt")
+
+
+token = st.one_of(
+    st.sampled_from(["FLASER", "ODOM", "PARAM", "ROBOTLASER1", "nan", "inf", "-inf", "nohost", "#", "1e400", ""]),
+    st.floats(allow_nan=True, allow_infinity=True).map(repr),
+    st.integers(-5, 400).map(str),
+    st.text(alphabet="abc0123456789.-e+ ", max_size=8),
+)
+line = st.lists(token, max_size=30).map(" ".join)
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(lines=st.lists(line, max_size=8))
+def test_fuzz_parser_fails_only_with_input_errors(tmp_path, lines):
+    p = tmp_path / "fuzz.clf"
+    p.write_text("\n".join(lines) + "\n")
+    try:
+        scans = list(CarmenLog(p))
+    except InputError as e:
+        assert str(e).startswith(str(p)) and "\n" not in str(e)
+        return
+    for s in scans:
+        assert s.ranges.dtype == np.float32 and s.valid.shape == s.ranges.shape
+        assert np.all(s.ranges[s.valid] > 0) and np.all(np.isfinite(s.ranges[s.valid]))
+        assert math.isfinite(s.timestamp)
+
+
+@settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(ranges=st.lists(st.floats(0.01, 80.0), min_size=1, max_size=50),
+       pose=st.tuples(*[st.floats(-100, 100)] * 3))
+def test_fuzz_valid_flaser_round_trips(tmp_path, flaser_line, ranges, pose):
+    p = tmp_path / "ok.clf"
+    p.write_text(flaser_line([f"{r:.3f}" for r in ranges], pose=pose))
+    (s,) = list(CarmenLog(p))
+    np.testing.assert_array_equal(s.ranges, np.float32([float(f"{r:.3f}") for r in ranges]))

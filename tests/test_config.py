@@ -1,0 +1,61 @@
+from pathlib import Path
+
+import pytest
+
+from slam2d.config import SlamConfig, config_from_dict, dump_config, load_config
+from slam2d.errors import ConfigError
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_default_yaml_is_dump_config_output():
+    assert (ROOT / "configs" / "default.yaml").read_text() == dump_config()
+
+
+@pytest.mark.parametrize("path", sorted((ROOT / "configs").glob("*.yaml")), ids=lambda p: p.name)
+def test_every_shipped_config_loads(path):
+    assert isinstance(load_config(path), SlamConfig)
+
+
+def test_dump_round_trips_changed_values(tmp_path):
+    cfg = config_from_dict({"grid": {"resolution": 0.1}, "submaps": {"num_range_data": 33}})
+    f = tmp_path / "c.yaml"
+    f.write_text(dump_config(cfg))
+    again = load_config(f)
+    assert again == cfg
+    assert again.grid.resolution == 0.1 and again.submaps.num_range_data == 33
+
+
+def test_every_option_has_a_description():
+    for name, field in SlamConfig.model_fields.items():
+        assert field.description
+        for key, sub in type(getattr(SlamConfig(), name)).model_fields.items():
+            assert sub.description, f"{name}.{key}"
+
+
+@pytest.mark.parametrize("data, needle", [
+    ({"grid": {"hit_probability": 1.5}}, "grid.hit_probability"),
+    ({"grid": {"miss_probability": 0.6}}, "grid.miss_probability"),
+    ({"grdi": {}}, "unknown key 'grdi'"),
+    ({"grid": {"resolutoin": 0.05}}, "unknown key 'grid.resolutoin'"),
+    ({"real_time_matcher": {"linear_search_window": 0}}, "real_time_matcher.linear_search_window"),
+    ({"map": {"free_thresh": 0.9}}, "free_thresh"),
+])
+def test_bad_values_name_the_key(data, needle):
+    with pytest.raises(ConfigError) as e:
+        config_from_dict(data, "user.yaml")
+    assert needle in str(e.value)
+    assert "user.yaml" in str(e.value)
+
+
+def test_bad_yaml_names_file_and_line(tmp_path):
+    f = tmp_path / "bad.yaml"
+    f.write_text("grid:\n  resolution: [0.05\n")
+    with pytest.raises(ConfigError) as e:
+        load_config(f)
+    assert str(f) in str(e.value) and "YAML" in str(e.value)
+
+
+def test_missing_config_file(tmp_path):
+    with pytest.raises(ConfigError, match="no such config file"):
+        load_config(tmp_path / "nope.yaml")

@@ -1,0 +1,119 @@
+"""Matching kernels against plain-numpy oracles; branch-and-bound against exhaustive search."""
+import math
+
+import numpy as np
+import pytest
+
+from slam2d.matching import _kernels
+from slam2d.matching.search import (DeltaPenalty, MatchGrid, PrecomputationStack, SearchParameters, angular_step,
+                                    branch_and_bound, exhaustive, sliding_max)
+
+
+def test_rotated_cells_oracle():
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-5, 5, (50, 2))
+    angles = np.linspace(-0.2, 0.2, 7)
+    got = _kernels.rotated_cells(pts, 1.3, -0.7, 0.4, angles, -10.0, -12.0, 20.0)
+    for a, da in enumerate(angles):
+        t = 0.4 + da
+        R = np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
+        w = pts @ R.T + [1.3, -0.7]
+        want = np.floor((w - [-10.0, -12.0]) * 20.0).astype(int)
+        np.testing.assert_array_equal(got[a], want)
+
+
+def score_oracle(values, cells, w, unknown):
+    rows, cols = values.shape
+    out = np.zeros((cells.shape[0], 2 * w + 1, 2 * w + 1))
+    for dy in range(-w, w + 1):
+        for dx in range(-w, w + 1):
+            c = cells[:, :, 0] + dx
+            r = cells[:, :, 1] + dy
+            inside = (r >= 0) & (r < rows) & (c >= 0) & (c < cols)
+            v = np.where(inside, values[np.clip(r, 0, rows - 1), np.clip(c, 0, cols - 1)], unknown)
+            out[:, dy + w, dx + w] = v.mean(axis=1)
+    return out
+
+
+def test_score_window_and_candidates_oracle():
+    rng = np.random.default_rng(1)
+    values = rng.random((40, 50)).astype(np.float32)
+    cells = rng.integers(-3, 55, size=(4, 30, 2)).astype(np.int32)
+    got = _kernels.score_window(values, cells, 3, np.float32(0.1))
+    want = score_oracle(values, cells, 3, 0.1)
+    np.testing.assert_allclose(got, want, rtol=1e-5)
+    cands = np.array([[a, dx, dy] for a in range(4) for dx in range(-3, 4) for dy in range(-3, 4)], np.int32)
+    sc = _kernels.score_candidates(values, cells, cands, np.float32(0.1))
+    np.testing.assert_allclose(sc, [want[a, dy + 3, dx + 3] for a, dx, dy in cands], rtol=1e-5)
+
+
+@pytest.mark.parametrize("width", [1, 2, 4, 8, 16])
+def test_sliding_max_oracle(width):
+    rng = np.random.default_rng(width)
+    v = rng.random((23, 31)).astype(np.float32)
+    got = sliding_max(v, width, 0.05)
+    pad = np.full((23 + width, 31 + width), 0.05, np.float32)
+    pad[:23, :31] = v
+    for r in range(23):
+        for c in range(31):
+            assert got[r, c] == pad[r:r + width, c:c + width].max()
+
+
+def bicubic_oracle(values, u, v, unknown):
+    """Catmull-Rom as separable 1-D cubic convolution, plain numpy."""
+    def w(t):
+        t = abs(t)
+        if t <= 1:
+            return 1.5 * t ** 3 - 2.5 * t ** 2 + 1
+        if t < 2:
+            return -0.5 * t ** 3 + 2.5 * t ** 2 - 4 * t + 2
+        return 0.0
+    uu, vv = u - 0.5, v - 0.5
+    i0, j0 = math.floor(uu), math.floor(vv)
+    s = 0.0
+    for j in range(j0 - 1, j0 + 3):
+        for i in range(i0 - 1, i0 + 3):
+            val = values[j, i] if 0 <= j < values.shape[0] and 0 <= i < values.shape[1] else unknown
+            s += w(uu - i) * w(vv - j) * val
+    return s
+
+
+def test_bicubic_value_and_gradient():
+    rng = np.random.default_rng(2)
+    values = rng.random((12, 14))
+    out = np.empty(3)
+    for _ in range(50):
+        u, v = rng.uniform(-1, 15), rng.uniform(-1, 13)
+        _kernels.bicubic(values, u, v, 0.2, out)
+        assert out[0] == pytest.approx(bicubic_oracle(values, u, v, 0.2), abs=1e-9)
+        h = 1e-6
+        du = (bicubic_oracle(values, u + h, v, 0.2) - bicubic_oracle(values, u - h, v, 0.2)) / (2 * h)
+        dv = (bicubic_oracle(values, u, v + h, 0.2) - bicubic_oracle(values, u, v - h, 0.2)) / (2 * h)
+        assert out[1] == pytest.approx(du, abs=1e-5) and out[2] == pytest.approx(dv, abs=1e-5)
+
+
+def test_angular_step_rule():
+    assert angular_step(0.05, 30.0) == pytest.approx(math.acos(1 - 0.05 ** 2 / (2 * 30.0 ** 2)))
+    # the farthest point moves by about one cell per step
+    assert 30.0 * angular_step(0.05, 30.0) == pytest.approx(0.05, rel=1e-3)
+
+
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("depth", [1, 2, 3])
+def test_branch_and_bound_equals_exhaustive(seed, depth):
+    rng = np.random.default_rng(seed)
+    values = (rng.random((80, 90)) ** 3).astype(np.float32)
+    grid = MatchGrid(values, np.array([-2.0, -2.0]), 0.05, 0.1)
+    pts = rng.uniform(-1.5, 1.5, (40, 2))
+    params = SearchParameters.make(0.3, 0.05, 0.05, pts)
+    cells = grid.cells(pts, (0.2, 0.1, 0.0), params.angles)
+    pen = DeltaPenalty(0.5 * seed, 0.3 * seed)
+    ex = exhaustive(grid, cells, params.linear_cells, pen, params.angles)
+    stack = PrecomputationStack(grid, depth)
+    found = branch_and_bound(stack, cells, params.linear_cells, 0.0, pen, params.angles)
+    a, dx, dy, s = found
+    w = params.linear_cells
+    assert s == pytest.approx(float(ex.max()), rel=1e-6)
+    assert ex[a, dy + w, dx + w] == pytest.approx(s, rel=1e-6)
+    # above the best score nothing is found
+    assert branch_and_bound(stack, cells, w, float(ex.max()) + 1e-6, pen, params.angles) is None
