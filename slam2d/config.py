@@ -57,7 +57,7 @@ class RealTimeMatcherConfig(_Section):
     """Olson 2009 real-time correlative scan matcher (local SLAM)."""
 
     score_grid: Literal["likelihood_field", "probability"] = Field("likelihood_field", description="What a scan is scored against: a likelihood field (Gaussian of the distance to the nearest occupied cell; Olson 2009) or the hit probabilities (Cartographer).")
-    likelihood_field_sigma: float = Field(0.05, gt=0.0, le=1.0, description="Standard deviation of the likelihood field [m] (cut at 3 sigma).")
+    likelihood_field_sigma: float = Field(0.1, gt=0.0, le=1.0, description="Standard deviation of the likelihood field [m] (cut at 3 sigma).")
     linear_search_window: float = Field(0.15, gt=0.0, description="Half-width of the x/y search window around the predicted pose [m].")
     angular_search_window_deg: float = Field(5.0, gt=0.0, le=180.0, description="Half-width of the rotation search window [deg].")
     branch_depth: int = Field(0, ge=0, le=6, description="Levels of the coarse-to-fine search (0 = exhaustive); results equal the exhaustive search on the same lattice.")

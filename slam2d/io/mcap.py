@@ -210,6 +210,7 @@ class McapWriter:
         self.scan_topic, self.odom_topic = scan_topic, odom_topic
         self._schemas = {}
         self._seq = 0
+        self._log_time = -1
         self._mount_written = False
 
     def schema(self, name):
@@ -219,7 +220,11 @@ class McapWriter:
 
     def write(self, topic, type_name, msg, sec, nsec):
         ns = sec * 1_000_000_000 + nsec
-        self._w.write_message(topic, self.schema(type_name), msg, log_time=ns, publish_time=ns, sequence=self._seq)
+        # log time never goes back, so readers that sort by it keep the source's order even
+        # where the source's own stamps go back (the Intel log does); header stamps stay exact
+        self._log_time = max(ns, self._log_time + 1)
+        self._w.write_message(topic, self.schema(type_name), msg, log_time=self._log_time, publish_time=ns,
+                              sequence=self._seq)
         self._seq += 1
 
     def write_scan(self, scan: Scan):

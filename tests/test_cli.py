@@ -1,0 +1,155 @@
+"""The command line as a new user meets it: outputs, one-line errors, no half-written files."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from slam2d.cli import main
+from slam2d.grid.map_export import read_pgm
+from slam2d.io.trajectory import read_tum
+
+from conftest import BUNDLED
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def slam2d(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "slam2d.cli", *map(str, args)], capture_output=True, text=True,
+                          cwd=cwd or ROOT, timeout=600)
+
+
+def test_help_has_examples():
+    r = slam2d("--help")
+    assert r.returncode == 0 and "examples:" in r.stdout and "slam2d run" in r.stdout
+    r = slam2d("run", "--help")
+    assert r.returncode == 0 and "example" in r.stdout
+
+
+def test_run_on_bundled_dataset_writes_the_output_contract(tmp_path):
+    out = tmp_path / "run"
+    assert main(["run", str(BUNDLED), "--out", str(out), "--no-progress"]) == 0
+    names = {p.name for p in out.iterdir()}
+    assert {"trajectory.txt", "map.pgm", "map.yaml", "map.png", "config.yaml", "summary.json"} <= names
+    assert not any(n.endswith(".partial") for n in names)
+    t, poses, stamps = read_tum(out / "trajectory.txt")
+    assert len(t) == 1480
+    assert stamps[0] == "1700000000.000000000" and np.all(np.diff(t) > 0)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["scans"] == 1480 and summary["mode"] == "local"
+    assert summary["real_time_factor"] > 0 and summary["duration_s"] == pytest.approx(295.8)
+    assert summary["timings"]["match"]["p99_ms"] > 0
+    y = (out / "map.yaml").read_text()
+    for key in ("image: map.pgm", "resolution: 0.05", "origin: [", "occupied_thresh:", "free_thresh:", "negate: 0"):
+        assert key in y
+    img = read_pgm(out / "map.pgm")
+    assert set(np.unique(img)) <= {0, 205, 254} and (img == 0).sum() > 500 and (img == 254).sum() > 5000
+    assert (out / "map.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # the map is from the corrected poses: the corridor ring closes within the ground truth's error
+    from slam2d.io.mcap import McapLog
+
+    gt = np.array([s.ground_truth for s in McapLog(BUNDLED)])
+    from slam2d.geometry import between
+
+    rel_gt = between(gt[:-50], gt[50:])
+    rel = between(poses[:-50], poses[50:])
+    err = np.hypot(*(between(rel_gt, rel)[:, :2]).T).mean()
+    assert err < 0.08
+
+
+def test_odometry_only_and_config(tmp_path):
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("grid:\n  resolution: 0.1\nmap:\n  resolution: 0.1\n")
+    out = tmp_path / "o"
+    r = slam2d("run", BUNDLED, "--out", out, "--odometry-only", "--config", cfg, "--max-scans", "100", "--no-progress")
+    assert r.returncode == 0, r.stderr
+    assert "resolution: 0.1" in (out / "map.yaml").read_text()
+    assert len(read_tum(out / "trajectory.txt")[0]) == 100
+    assert json.loads((out / "summary.json").read_text())["mode"] == "odometry"
+
+
+def test_info_json_and_dump_config(tmp_path):
+    r = slam2d("info", BUNDLED, "--json")
+    info = json.loads(r.stdout)
+    assert info["scans"] == 1480 and info["beams"] == 360 and info["has_odometry"] and info["has_ground_truth"]
+    r = slam2d("dump-config")
+    assert r.stdout == (ROOT / "configs" / "default.yaml").read_text()
+
+
+def test_convert_then_run_on_mcap(tmp_path, flaser_line):
+    log = tmp_path / "small.clf"
+    log.write_text("".join(flaser_line([1.0 + 0.01 * i, 2.0, 81.83, 3.0], ts=f"{100 + i}.250000") for i in range(20)))
+    out = tmp_path / "small.mcap"
+    r = slam2d("convert", log, out, "--no-progress")
+    assert r.returncode == 0, r.stderr
+    from slam2d.io.mcap import McapLog
+
+    back = list(McapLog(out))
+    assert [s.timestamp_text for s in back] == [f"{100 + i}.250000000" for i in range(20)]
+    assert all(not s.valid[2] and s.valid[[0, 1, 3]].all() for s in back)
+
+
+BAD_CARMEN = {
+    "truncated.clf": "FLASER 180 1.0 2.0\n",
+    "nonnumeric.clf": "FLASER 2 1.0 x 0 0 0 0 0 0 1.0 h 1.0\n",
+    "negative.clf": "FLASER 2 1.0 -1 0 0 0 0 0 0 1.0 h 1.0\n",
+    "mismatch.clf": "FLASER 3 1.0 2.0 0 0 0 0 0 0 1.0 h 1.0\n",
+    "backwards.clf": "FLASER 1 1.0 0 0 0 0 0 0 10.0 h 1.0\nFLASER 1 1.0 0 0 0 0 0 0 5.0 h 1.0\n",
+    "empty.clf": "",
+    "unknown.xyz": "hello\n",
+    "corrupt.clf.gz": "\x1f\x8bnot really gzip",
+    "corrupt.clf.bz2": "BZh9 not really bzip2",
+    "nolaser.mcap": None,
+}
+
+
+@pytest.mark.parametrize("name", sorted(BAD_CARMEN))
+@pytest.mark.parametrize("command", ["run", "info", "convert"])
+def test_bad_input_one_line_error(tmp_path, name, command):
+    p = tmp_path / name
+    if name == "nolaser.mcap":
+        from slam2d.io.mcap import McapWriter
+
+        with open(p, "wb") as f:
+            w = McapWriter(f)
+            w.write_pose("/pose", np.zeros(3), 1, 0)
+            w.finish()
+    else:
+        p.write_text(BAD_CARMEN[name])
+    out = tmp_path / "out"
+    args = {"run": ["run", p, "--out", out, "--no-progress"], "info": ["info", p],
+            "convert": ["convert", p, tmp_path / "x.mcap", "--no-progress"]}[command]
+    r = slam2d(*args)
+    assert r.returncode != 0
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1, r.stderr
+    assert lines[0].startswith("slam2d: error: ") and name in lines[0]
+    assert "Traceback" not in r.stderr
+    if out.exists():
+        assert list(out.iterdir()) == []
+    assert not (tmp_path / "x.mcap").exists() and not (tmp_path / "x.mcap.partial").exists()
+
+
+def test_missing_file_and_bad_config(tmp_path):
+    r = slam2d("run", tmp_path / "nope.clf", "--out", tmp_path / "o")
+    assert r.returncode != 0 and r.stderr.strip().count("\n") == 0 and "no such file" in r.stderr
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("grid:\n  hit_probability: 2\n")
+    r = slam2d("run", BUNDLED, "--out", tmp_path / "o", "--config", cfg)
+    assert r.returncode != 0 and "grid.hit_probability" in r.stderr and r.stderr.strip().count("\n") == 0
+
+
+def test_failed_run_keeps_previous_outputs_whole(tmp_path, flaser_line):
+    good = tmp_path / "good.clf"
+    good.write_text("".join(flaser_line([1.0, 2.0, 3.0], ts=f"{100 + i}.0") for i in range(5)))
+    out = tmp_path / "o"
+    assert slam2d("run", good, "--out", out, "--no-progress").returncode == 0
+    before = (out / "trajectory.txt").read_text()
+    bad = tmp_path / "bad.clf"
+    bad.write_text(good.read_text() + "FLASER 3 1.0 oops 3.0 0 0 0 0 0 0 200.0 h 1.0\n")
+    r = slam2d("run", bad, "--out", out, "--no-progress")
+    assert r.returncode != 0 and "bad.clf:6:" in r.stderr
+    assert (out / "trajectory.txt").read_text() == before
+    assert not [p for p in out.iterdir() if p.name.endswith(".partial")]
