@@ -1,14 +1,146 @@
-"""``slam2d eval ...`` subcommands."""
+"""``slam2d eval relations | ate | loops``."""
 from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+EXAMPLES = """examples:
+  slam2d eval relations runs/intel/trajectory.txt ../shared/datasets/intel/intel.relations
+  slam2d eval ate runs/intel/trajectory.txt ../shared/datasets/intel/intel.gfs.log --plot runs/intel/ate.png
+  slam2d eval loops runs/intel --reference ../shared/datasets/intel/intel.gfs.log
+"""
 
 
 def add_eval_parser(sub):
-    p = sub.add_parser("eval", help="evaluate a trajectory (relations metric, ATE/RPE, loop closures)")
-    p.set_defaults(eval_command=None)
+    p = sub.add_parser("eval", help="evaluate a trajectory (relations metric, ATE/RPE, loop closures)",
+                       epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
+    es = p.add_subparsers(dest="eval_command", metavar="METRIC")
+
+    r = es.add_parser("relations", help="Kümmerle et al. 2009 relations metric (as Cartographer reports it)")
+    r.add_argument("trajectory", help="TUM trajectory (e.g. RUN_DIR/trajectory.txt)")
+    r.add_argument("relations", help="relations file: t1 t2 x y z roll pitch yaw per line")
+    r.add_argument("--tolerance", type=float, default=1e-4, help="timestamp match tolerance [s] (default 1e-4)")
+    r.add_argument("--json", action="store_true")
+
+    a = es.add_parser("ate", help="absolute trajectory error (SE(2) Umeyama alignment) and RPE")
+    a.add_argument("trajectory")
+    a.add_argument("reference", help="TUM file, MCAP with /ground_truth, or CARMEN corrected log (*.gfs.log, *-corrected.log*)")
+    a.add_argument("--run-input", default=None, help="the log the run read (default: 'input' in summary.json beside the trajectory)")
+    a.add_argument("--distances", default="1,5,10", help="RPE travelled distances [m], comma-separated")
+    a.add_argument("--plot", default=None, help="write trajectory-vs-reference PNG here (and *_error.png)")
+    a.add_argument("--json", action="store_true")
+
+    lp = es.add_parser("loops", help="loop-closure precision/recall from RUN_DIR/constraints.jsonl")
+    lp.add_argument("run_dir")
+    lp.add_argument("--reference", default=None, help="TUM file, MCAP with /ground_truth, or CARMEN corrected log")
+    lp.add_argument("--run-input", default=None)
+    lp.add_argument("--own-trans", type=float, default=0.2, help="(a) own-solution threshold [m] (default 0.2)")
+    lp.add_argument("--own-rot", type=float, default=1.0, help="(a) own-solution threshold [deg] (default 1)")
+    lp.add_argument("--ref-trans", type=float, default=0.3, help="(b) reference threshold [m] (default 0.3)")
+    lp.add_argument("--ref-rot", type=float, default=2.0, help="(b) reference threshold [deg] (default 2)")
+    lp.add_argument("--revisit-distance", type=float, default=1.0, help="recall: a revisit comes this close [m]")
+    lp.add_argument("--plot-dir", default=None, help="write loops_on_map.png and loop_scores.png here (default RUN_DIR)")
+    lp.add_argument("--json", action="store_true")
     return p
+
+
+def _print(obj, as_json):
+    if as_json:
+        print(json.dumps(obj, indent=2))
+        return
+    def walk(o, prefix=""):
+        for k, v in o.items():
+            if isinstance(v, dict):
+                walk(v, f"{prefix}{k}.")
+            elif not isinstance(v, list):
+                print(f"{prefix}{k}: {v:.6g}" if isinstance(v, float) else f"{prefix}{k}: {v}")
+    walk(obj)
 
 
 def run_eval(args) -> int:
     from slam2d.errors import UsageError
 
-    raise UsageError("eval: choose a metric (relations, ate, loops)")
+    if args.eval_command is None:
+        raise UsageError("eval: choose a metric: relations, ate or loops (see slam2d eval --help)")
+    return {"relations": _relations, "ate": _ate, "loops": _loops}[args.eval_command](args)
+
+
+def _relations(args) -> int:
+    from slam2d.eval.relations import read_relations, relations_metric
+    from slam2d.io.trajectory import read_tum
+
+    t, poses, _ = read_tum(args.trajectory)
+    m = relations_metric(t, poses, read_relations(args.relations), args.tolerance)
+    m["trajectory"], m["relations_file"] = args.trajectory, args.relations
+    _print(m, args.json)
+    return 0
+
+
+def _ate(args) -> int:
+    from slam2d.errors import UsageError
+    from slam2d.eval.ate import align, ate, rpe
+    from slam2d.eval.reference import load_reference, run_input_of
+    from slam2d.io.trajectory import read_tum
+
+    t, poses, _ = read_tum(args.trajectory)
+    ref = load_reference(args.reference, t, run_input_of(Path(args.trajectory), args.run_input))
+    if ref.scan_indices.max() >= len(poses):
+        raise UsageError(f"{args.reference}: matches scan {ref.scan_indices.max()} but the trajectory has {len(poses)} poses")
+    est = poses[ref.scan_indices]
+    try:
+        dists = [float(d) for d in args.distances.split(",") if d]
+    except ValueError:
+        raise UsageError(f"--distances: not a list of numbers: {args.distances!r}") from None
+    out = {"reference_kind": ref.kind, "reference_scans": ref.total_reference_scans,
+           "matched_scans": int(len(ref.scan_indices)), "ate": ate(est, ref.poses), "rpe": rpe(est, ref.poses, dists)}
+    if args.plot:
+        from slam2d.eval.plots import plot_error_over_time, plot_trajectories
+
+        al = align(est, ref.poses)
+        plot_trajectories(args.plot, al, ref.poses, title=f"ATE RMSE {out['ate']['trans_m']['rmse']:.3f} m")
+        err = np.hypot(*(al[:, :2] - ref.poses[:, :2]).T)
+        plot_error_over_time(str(Path(args.plot).with_name(Path(args.plot).stem + "_error.png")), t[ref.scan_indices], err,
+                             "ATE [m]")
+    _print(out, args.json)
+    return 0
+
+
+def _loops(args) -> int:
+    from slam2d.eval.loops import Thresholds, classify, read_constraints
+    from slam2d.eval.plots import plot_loops, plot_score_histogram
+    from slam2d.eval.reference import load_reference, run_input_of
+    from slam2d.io.trajectory import read_tum
+
+    run_dir = Path(args.run_dir)
+    t, poses, _ = read_tum(run_dir / "trajectory.txt")
+    constraints = read_constraints(run_dir / "constraints.jsonl")
+    th = Thresholds(args.own_trans, args.own_rot, args.ref_trans, args.ref_rot, args.revisit_distance)
+    ref_dense = ref_key = None
+    if args.reference:
+        run_input = run_input_of(run_dir / "trajectory.txt", args.run_input)
+        ref = load_reference(args.reference, t, run_input)
+        odom = _odometry(run_input, len(t)) if ref.kind == "corrected_carmen" else None
+        ref_dense = ref.dense(odom) if odom is not None else ref.dense(None)
+        if len(ref_dense) < len(t):
+            ref_dense = np.vstack([ref_dense, np.full((len(t) - len(ref_dense), 3), np.nan)])
+        ref_key = (ref.scan_indices, ref.poses)
+    out = classify(constraints, poses, ref_dense, ref_key, th)
+    plot_dir = Path(args.plot_dir) if args.plot_dir else run_dir
+    key = "true_ref" if ref_dense is not None else "true_own"
+    plot_loops(plot_dir / "loops_on_map.png", run_dir, poses, constraints, key)
+    plot_score_histogram(plot_dir / "loop_scores.png", out["score_histogram"], "loop-closure scores")
+    out.pop("score_histogram") if not args.json else None
+    _print(out, args.json)
+    return 0
+
+
+def _odometry(run_input, n):
+    from slam2d.io.source import open_source
+
+    odom = [s.odom_pose for s in open_source(run_input)]
+    if not odom or any(o is None for o in odom):
+        return None
+    return np.array(odom[:n])

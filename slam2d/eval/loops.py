@@ -1,0 +1,131 @@
+"""Loop-closure precision and recall.
+
+Each loop-closure constraint of a run (``constraints.jsonl``: one JSON object per line with
+``from_scan``, ``to_scan``, ``relative_pose`` [x, y, θ] of the ``to`` scan in the ``from``
+scan's frame, ``score``, ``accepted``, optionally ``in_final_graph``) is classified twice:
+
+(a) against the run's own final poses: true when they agree within 0.2 m and 1° — the
+    criterion of Hess et al. 2016, Table IV;
+(b) against a reference trajectory: true within 0.3 m and 2° (the reference has its own
+    few-centimetre error).
+
+Recall counts revisit episodes of the reference — runs of reference scans that come back
+within ``revisit_distance`` of a place passed more than ``min_loop_travel`` metres of path
+earlier — that at least one true accepted constraint touches.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from slam2d.errors import InputError
+from slam2d.geometry import between
+
+
+@dataclass
+class Thresholds:
+    own_trans: float = 0.2
+    own_rot_deg: float = 1.0
+    ref_trans: float = 0.3
+    ref_rot_deg: float = 2.0
+    revisit_distance: float = 1.0
+    min_loop_travel: float = 10.0
+
+
+def read_constraints(path) -> list[dict]:
+    path = Path(path)
+    if not path.exists():
+        raise InputError(path, "no such file (global SLAM writes constraints.jsonl)")
+    out = []
+    with open(path) as f:
+        for n, line in enumerate(f, start=1):
+            if not line.strip():
+                continue
+            try:
+                c = json.loads(line)
+                c["from_scan"], c["to_scan"] = int(c["from_scan"]), int(c["to_scan"])
+                c["relative_pose"] = [float(v) for v in c["relative_pose"]]
+                c["score"] = float(c.get("score", math.nan))
+                c["accepted"] = bool(c["accepted"])
+            except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
+                raise InputError(path, f"not a constraint record ({type(e).__name__}: {e})", line=n) from None
+            if len(c["relative_pose"]) != 3:
+                raise InputError(path, "relative_pose needs 3 values", line=n)
+            out.append(c)
+    return out
+
+
+def agrees(poses: np.ndarray, c: dict, trans: float, rot_deg: float):
+    """True/False, or None when a pose is unknown."""
+    i, j = c["from_scan"], c["to_scan"]
+    if i >= len(poses) or j >= len(poses) or np.isnan(poses[i, 0]) or np.isnan(poses[j, 0]):
+        return None
+    e = between(between(poses[i], poses[j]), np.asarray(c["relative_pose"]))
+    return bool(math.hypot(e[0], e[1]) <= trans and abs(math.degrees(e[2])) <= rot_deg)
+
+
+def revisit_episodes(ref_idx: np.ndarray, ref_poses: np.ndarray, th: Thresholds) -> list[tuple[int, int]]:
+    """(first scan, last scan) of each run of reference scans that revisit an earlier place."""
+    if len(ref_idx) < 2:
+        return []
+    travelled = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(ref_poses[:, :2], axis=0).T))])
+    tree = cKDTree(ref_poses[:, :2])
+    revisit = np.zeros(len(ref_idx), bool)
+    for k, near in enumerate(tree.query_ball_point(ref_poses[:, :2], th.revisit_distance)):
+        revisit[k] = any(travelled[k] - travelled[m] > th.min_loop_travel for m in near)
+    episodes, start = [], None
+    for k in range(len(ref_idx)):
+        if revisit[k] and start is None:
+            start = k
+        if start is not None and (not revisit[k] or k == len(ref_idx) - 1):
+            end = k if revisit[k] else k - 1
+            episodes.append((int(ref_idx[start]), int(ref_idx[end])))
+            start = None
+    return episodes
+
+
+def classify(constraints: list[dict], own_poses: np.ndarray, ref_dense: np.ndarray | None,
+             ref_key: tuple[np.ndarray, np.ndarray] | None, th: Thresholds = Thresholds()) -> dict:
+    for c in constraints:
+        c["true_own"] = agrees(own_poses, c, th.own_trans, th.own_rot_deg)
+        c["true_ref"] = agrees(ref_dense, c, th.ref_trans, th.ref_rot_deg) if ref_dense is not None else None
+    accepted = [c for c in constraints if c["accepted"]]
+    final = [c for c in accepted if c.get("in_final_graph", True)]
+
+    def precision(cs, key):
+        known = [c[key] for c in cs if c[key] is not None]
+        return {"true": int(sum(known)), "false": int(len(known) - sum(known)), "unknown": len(cs) - len(known),
+                "precision": (sum(known) / len(known)) if known else None}
+
+    out = {
+        "constraints": len(constraints),
+        "accepted": len(accepted),
+        "in_final_graph": len(final),
+        "own": {"accepted": precision(accepted, "true_own"), "final_graph": precision(final, "true_own")},
+    }
+    if ref_dense is not None:
+        out["reference"] = {"accepted": precision(accepted, "true_ref"), "final_graph": precision(final, "true_ref"),
+                            "rejected": precision([c for c in constraints if not c["accepted"]], "true_ref")}
+        if ref_key is not None:
+            eps = revisit_episodes(ref_key[0], ref_key[1], th)
+            hit = 0
+            for a, b in eps:
+                if any(c["true_ref"] and (a <= c["to_scan"] <= b or a <= c["from_scan"] <= b) for c in final):
+                    hit += 1
+            out["reference"]["recall"] = {"episodes": len(eps), "closed": hit,
+                                          "recall": hit / len(eps) if eps else None}
+    key = "true_ref" if ref_dense is not None else "true_own"
+    bins = np.linspace(0.0, 1.0, 21)
+    hist = {"bins": bins.tolist(), "true": [0] * 20, "false": [0] * 20}
+    for c in constraints:
+        if c[key] is None or not np.isfinite(c["score"]):
+            continue
+        b = int(np.clip(np.searchsorted(bins, c["score"], side="right") - 1, 0, 19))
+        hist["true" if c[key] else "false"][b] += 1
+    out["score_histogram"] = hist
+    return out

@@ -1,0 +1,151 @@
+"""Reference trajectories for evaluation, expressed per scan of the run.
+
+A reference is a TUM file (associated to the run's scans by timestamp), an MCAP with the
+simulator's ``/ground_truth`` (one pose per scan), or a CARMEN "corrected" log such as
+GMapping's ``*.gfs.log`` / ``*-corrected.log``. Those logs hold corrected poses for key
+scans only and their timestamps are rounded to a few significant digits, so their scans are
+associated to the run's input scans by identical range readings (in order; the SOURCE.md of
+each shared dataset documents this). Scans between key scans can take the previous key
+pose composed with the raw odometry increment (`Reference.dense`).
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from slam2d.errors import InputError
+from slam2d.geometry import between, compose
+from slam2d.io._text import iter_lines
+from slam2d.io.carmen import _parse_laser
+from slam2d.io.source import open_source, source_kind
+
+
+@dataclass
+class Reference:
+    scan_indices: np.ndarray  # (K,) indices into the run's scans, increasing
+    poses: np.ndarray         # (K, 3) reference poses of those scans
+    kind: str
+    total_reference_scans: int
+
+    def dense(self, odom: np.ndarray | None) -> np.ndarray:
+        """A reference pose for every scan: key poses, and between them the last key pose
+        composed with the odometry increment (NaN before the first key scan or without odometry)."""
+        n = len(odom) if odom is not None else int(self.scan_indices.max()) + 1
+        out = np.full((n, 3), np.nan)
+        out[self.scan_indices] = self.poses
+        if odom is None:
+            return out
+        k = 0
+        for i in range(n):
+            while k + 1 < len(self.scan_indices) and self.scan_indices[k + 1] <= i:
+                k += 1
+            j = self.scan_indices[k]
+            if j < i:
+                out[i] = compose(self.poses[k], between(odom[j], odom[i]))
+        return out
+
+
+def run_input_of(traj_path: Path, given: str | None) -> str | None:
+    """The log a run was made from: given, or the ``input`` in the run's summary.json."""
+    if given:
+        return given
+    summary = Path(traj_path).parent / "summary.json"
+    if summary.exists():
+        try:
+            return json.loads(summary.read_text()).get("input")
+        except (json.JSONDecodeError, OSError):
+            return None
+    return None
+
+
+def is_carmen(path) -> bool:
+    try:
+        return source_kind(path) == "carmen"
+    except InputError:
+        return False
+
+
+def read_corrected_carmen(path):
+    """[(ranges float32, pose (3,), line)] of the laser lines of a corrected log (timestamps ignored)."""
+    out = []
+    for lineno, line in iter_lines(path):
+        parts = line.split()
+        if not parts or parts[0] not in ("FLASER", "RLASER", "ROBOTLASER1"):
+            continue
+        p = _parse_laser(Path(path), lineno, parts)
+        out.append((p.ranges.astype(np.float32), p.laser_pose.copy(), lineno))
+    if not out:
+        raise InputError(path, "no laser lines in the reference log")
+    return out
+
+
+def associate_by_ranges(run_scans, corrected) -> tuple[np.ndarray, np.ndarray, int]:
+    """Match corrected key scans to run scans whose range readings are identical, in order."""
+    table: dict[bytes, list[int]] = {}
+    offsets = []
+    for s in run_scans:
+        table.setdefault(s.ranges.astype(np.float32).tobytes(), []).append(s.index)
+        offsets.append(s.laser_offset)
+    idx, poses = [], []
+    last = -1
+    for ranges, laser_pose, _ in corrected:
+        cands = [i for i in table.get(ranges.tobytes(), []) if i > last]
+        if not cands:
+            continue
+        i = cands[0]
+        last = i
+        idx.append(i)
+        # the corrected pose is the laser's; the run's trajectory is the robot's
+        poses.append(compose(laser_pose, between(offsets[i], np.zeros(3))))
+    return np.array(idx, dtype=int), np.array(poses).reshape(-1, 3), len(corrected)
+
+
+def load_reference(ref_path, run_stamps: np.ndarray, run_input: str | None, tolerance=1e-3) -> Reference:
+    """The reference for the scans of a run (poses of scans the run did not reach are left out)."""
+    ref = _load_reference(ref_path, run_stamps, run_input, tolerance)
+    keep = ref.scan_indices < len(run_stamps)
+    if not keep.any():
+        raise InputError(ref_path, "no reference pose falls on a scan of the trajectory")
+    return Reference(ref.scan_indices[keep], ref.poses[keep], ref.kind, ref.total_reference_scans)
+
+
+def _load_reference(ref_path, run_stamps, run_input, tolerance) -> Reference:
+    ref_path = Path(ref_path)
+    if not ref_path.exists():
+        raise InputError(ref_path, "no such file")
+    name = ref_path.name.lower()
+    if name.endswith(".mcap"):
+        src = open_source(ref_path)
+        idx, poses = [], []
+        for s in src:
+            if s.ground_truth is not None:
+                idx.append(s.index)
+                poses.append(s.ground_truth)
+        if not idx:
+            raise InputError(ref_path, "no ground-truth poses (/ground_truth) in the MCAP file")
+        return Reference(np.array(idx), np.array(poses), "ground_truth", len(idx))
+    if is_carmen(ref_path) or name.endswith(".gfs.log"):
+        if run_input is None:
+            raise InputError(ref_path, "a corrected CARMEN reference is matched to the run's input scans: "
+                             "give --run-input LOG (or keep summary.json beside the trajectory)")
+        corrected = read_corrected_carmen(ref_path)
+        idx, poses, total = associate_by_ranges(open_source(run_input), corrected)
+        if len(idx) == 0:
+            raise InputError(ref_path, f"none of its scans has the same range readings as a scan of {run_input}")
+        return Reference(idx, poses, "corrected_carmen", total)
+    from slam2d.io.trajectory import read_tum
+
+    t, poses, _ = read_tum(ref_path)
+    order = np.argsort(run_stamps, kind="stable")
+    st = run_stamps[order]
+    pos = np.clip(np.searchsorted(st, t), 1, len(st) - 1)
+    near = np.where(np.abs(st[pos - 1] - t) <= np.abs(st[pos] - t), pos - 1, pos)
+    ok = np.abs(st[near] - t) <= tolerance
+    if not ok.any():
+        raise InputError(ref_path, f"no reference timestamp within {tolerance} s of a trajectory timestamp")
+    idx = order[near[ok]]
+    keep = np.argsort(idx, kind="stable")
+    return Reference(idx[keep], poses[ok][keep], "tum", len(t))

@@ -1,0 +1,195 @@
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from slam2d.eval.ate import align, ate, rpe
+from slam2d.eval.loops import Thresholds, classify, read_constraints
+from slam2d.eval.relations import Relations, read_relations, relations_metric
+from slam2d.geometry import between, compose
+from slam2d.io.trajectory import read_tum, write_tum
+
+from conftest import BUNDLED, SHARED, dataset, relations
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def slam2d(*args):
+    return subprocess.run([sys.executable, "-m", "slam2d.cli", *map(str, args)], capture_output=True, text=True,
+                          cwd=ROOT, timeout=900)
+
+
+def test_relations_hand_computed_case():
+    # two poses: (0,0,0) and (1,0,90°); the relation claims (1.1, 0, 80°)
+    times = np.array([1.0, 2.0])
+    poses = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, math.pi / 2]])
+    rel = Relations(np.array([1.0]), np.array([2.0]), np.array([[1.1, 0.0, math.radians(80)]]))
+    m = relations_metric(times, poses, rel)
+    # error = (1,0,90°) ∘ (1.1,0,80°)⁻¹: rotation 10°, translation (1,0) − R(10°)(1.1,0)
+    tx = 1.0 - 1.1 * math.cos(math.radians(10))
+    ty = -1.1 * math.sin(math.radians(10))
+    assert m["abs_trans_m"]["mean"] == pytest.approx(math.hypot(tx, ty), abs=1e-12)
+    assert m["abs_rot_deg"]["mean"] == pytest.approx(10.0, abs=1e-9)
+    assert m["sq_rot_deg2"]["mean"] == pytest.approx(100.0, abs=1e-7)
+    assert m["counts"]["evaluated"] == 1
+
+
+def gtsam_relations(times, poses, rel):
+    """Independent implementation of the same definition with gtsam.Pose2."""
+    import gtsam
+
+    lookup = {round(t, 6): gtsam.Pose2(*p) for t, p in zip(times, poses)}
+    trans, rot = [], []
+    for t1, t2, d in zip(rel.t1, rel.t2, rel.delta):
+        a, b = lookup[round(t1, 6)], lookup[round(t2, 6)]
+        err = a.between(b).compose(gtsam.Pose2(*d).inverse())
+        trans.append(math.hypot(err.x(), err.y()))
+        rot.append(abs(math.degrees(err.theta())))
+    return np.array(trans), np.array(rot)
+
+
+def test_relations_agree_with_gtsam_on_random_data():
+    rng = np.random.default_rng(0)
+    times = np.arange(200) * 0.5 + 1000.0
+    poses = np.cumsum(rng.normal(0, 0.3, (200, 3)), axis=0)
+    i = rng.integers(0, 200, 300)
+    j = rng.integers(0, 200, 300)
+    rel = Relations(times[i], times[j], rng.normal(0, 1.0, (300, 3)))
+    m = relations_metric(times, poses, rel)
+    tr, ro = gtsam_relations(times, poses, rel)
+    assert m["abs_trans_m"]["mean"] == pytest.approx(tr.mean(), abs=1e-9)
+    assert m["abs_trans_m"]["std"] == pytest.approx(tr.std(ddof=1), abs=1e-9)
+    assert m["abs_rot_deg"]["mean"] == pytest.approx(ro.mean(), abs=1e-9)
+
+
+def test_relations_interpolate_and_count_unmatched():
+    times = np.array([0.0, 1.0, 2.0])
+    poses = np.array([[0.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0]])
+    rel = Relations(np.array([0.5, 0.0, 5.0]), np.array([2.0, 1.0, 6.0]), np.array([[1.5, 0, 0], [1.0, 0, 0], [1, 0, 0]]))
+    m = relations_metric(times, poses, rel)
+    assert m["counts"] == {"relations": 3, "exact": 1, "interpolated": 1, "unmatched": 1, "evaluated": 2}
+    assert m["abs_trans_m"]["max"] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_relations_on_intel_odometry(tmp_path):
+    src = dataset("intel")
+    out = tmp_path / "odo"
+    assert slam2d("run", src, "--out", out, "--odometry-only", "--no-progress").returncode == 0
+    r = slam2d("eval", "relations", out / "trajectory.txt", relations("intel"), "--json")
+    m = json.loads(r.stdout)
+    assert m["abs_trans_m"]["mean"] == pytest.approx(7.37, abs=0.01)
+    t, poses, _ = read_tum(out / "trajectory.txt")
+    rel = read_relations(relations("intel"))
+    tr, ro = gtsam_relations(t, poses, rel)
+    assert m["abs_trans_m"]["mean"] == pytest.approx(tr.mean(), abs=1e-6)
+    assert m["abs_rot_deg"]["mean"] == pytest.approx(ro.mean(), abs=1e-6)
+    # ATE against the GMapping-corrected log: every one of its 910 scans is found by its ranges
+    r = slam2d("eval", "ate", out / "trajectory.txt", SHARED / "intel" / "intel.gfs.log", "--json",
+               "--plot", tmp_path / "ate.png")
+    a = json.loads(r.stdout)
+    assert a["matched_scans"] == 910 and a["reference_scans"] == 910
+    assert a["ate"]["trans_m"]["rmse"] > 1.0  # raw odometry is far off
+    assert (tmp_path / "ate.png").exists() and (tmp_path / "ate_error.png").exists()
+
+
+def test_ate_recovers_a_rigid_transform_exactly():
+    rng = np.random.default_rng(1)
+    ref = np.cumsum(rng.normal(0, 0.2, (300, 3)), axis=0)
+    T = np.array([3.0, -2.0, 0.7])
+    est = compose(T, ref)
+    np.testing.assert_allclose(align(est, ref), np.column_stack([ref[:, :2], np.angle(np.exp(1j * ref[:, 2]))]),
+                               atol=1e-9)
+    m = ate(est, ref)
+    assert m["trans_m"]["rmse"] < 1e-9
+    noisy = est.copy()
+    noisy[:, :2] += rng.normal(0, 0.05, (300, 2))
+    assert 0.03 < ate(noisy, ref)["trans_m"]["rmse"] < 0.1
+    r = rpe(est, ref, (1.0,))
+    assert r["1m"]["trans_m"]["max"] < 1e-9
+
+
+def _synthetic_run(tmp_path):
+    rng = np.random.default_rng(3)
+    n = 400
+    poses = np.column_stack([np.cos(np.arange(n) / 40) * 5, np.sin(np.arange(n) / 40) * 5, np.arange(n) / 40 + math.pi / 2])
+    write_tum(tmp_path / "trajectory.txt", [f"{i}.0" for i in range(n)], poses)
+    truth = []
+    with open(tmp_path / "constraints.jsonl", "w") as f:
+        for k in range(60):
+            i, j = sorted(rng.choice(n, 2, replace=False))
+            rel = between(poses[i], poses[j])
+            kind = k % 4
+            if kind == 1:
+                rel = rel + [0.5, 0.0, 0.0]  # false: 0.5 m off
+            elif kind == 2:
+                rel = rel + [0.0, 0.0, math.radians(3)]  # false: 3° off
+            elif kind == 3:
+                rel = rel + [0.1, 0.05, math.radians(0.5)]  # true: inside 0.2 m / 1°
+            truth.append(kind in (0, 3))
+            f.write(json.dumps({"from_scan": int(i), "to_scan": int(j), "relative_pose": list(map(float, rel)),
+                                "score": 0.5 + 0.4 * (kind in (0, 3)), "accepted": True}) + "\n")
+    return poses, truth
+
+
+def test_loops_classifies_synthetic_constraints_exactly(tmp_path):
+    poses, truth = _synthetic_run(tmp_path)
+    cs = read_constraints(tmp_path / "constraints.jsonl")
+    out = classify(cs, poses, poses.copy(), (np.arange(len(poses)), poses), Thresholds())
+    assert [c["true_own"] for c in cs] == truth
+    assert [c["true_ref"] for c in cs] == truth
+    assert out["own"]["accepted"]["true"] == sum(truth)
+    assert out["own"]["accepted"]["precision"] == pytest.approx(sum(truth) / len(truth))
+    # 0.25 m is outside (a)'s 0.2 m but inside (b)'s 0.3 m
+    c = {"from_scan": 0, "to_scan": 5, "relative_pose": list(between(poses[0], poses[5]) + [0.25, 0, 0]), "score": 0.7,
+         "accepted": True}
+    out = classify([c], poses, poses, None, Thresholds())
+    assert c["true_own"] is False and c["true_ref"] is True
+
+
+def test_loops_cli_with_ground_truth_reference(tmp_path):
+    _synthetic_run(tmp_path)
+    r = slam2d("eval", "loops", tmp_path, "--json")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["accepted"] == 60
+    assert (tmp_path / "loops_on_map.png").exists() and (tmp_path / "loop_scores.png").exists()
+    assert sum(out["score_histogram"]["true"]) == 30
+
+
+def test_loops_reads_corrected_carmen_reference(tmp_path):
+    src = dataset("intel")
+    run = tmp_path / "run"
+    assert slam2d("run", src, "--out", run, "--odometry-only", "--no-progress", "--max-scans", "3000").returncode == 0
+    t, poses, _ = read_tum(run / "trajectory.txt")
+    # constraints made from the corrected log's own relative poses are true against it
+    from slam2d.eval.reference import load_reference
+
+    ref = load_reference(SHARED / "intel" / "intel.gfs.log", t, str(src))
+    k = ref.scan_indices
+    with open(run / "constraints.jsonl", "w") as f:
+        for a, b in [(0, 10), (5, 50), (20, 120)]:
+            rel = between(ref.poses[a], ref.poses[b])
+            f.write(json.dumps({"from_scan": int(k[a]), "to_scan": int(k[b]), "relative_pose": list(map(float, rel)),
+                                "score": 0.8, "accepted": True}) + "\n")
+            f.write(json.dumps({"from_scan": int(k[a]), "to_scan": int(k[b]),
+                                "relative_pose": list(map(float, rel + [1.0, 0, 0])), "score": 0.6,
+                                "accepted": True}) + "\n")
+    r = slam2d("eval", "loops", run, "--reference", SHARED / "intel" / "intel.gfs.log", "--json")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["reference"]["accepted"]["true"] == 3 and out["reference"]["accepted"]["false"] == 3
+
+
+def test_eval_bad_inputs_are_one_line(tmp_path):
+    (tmp_path / "t.txt").write_text("1.0 2.0 3.0\n")
+    r = slam2d("eval", "relations", tmp_path / "t.txt", tmp_path / "missing.relations")
+    assert r.returncode != 0 and r.stderr.count("\n") == 1 and "t.txt:1" in r.stderr
+    (tmp_path / "c").mkdir()
+    write_tum(tmp_path / "c" / "trajectory.txt", ["1.0"], np.zeros((1, 3)))
+    (tmp_path / "c" / "constraints.jsonl").write_text("{not json\n")
+    r = slam2d("eval", "loops", tmp_path / "c")
+    assert r.returncode != 0 and "constraints.jsonl:1" in r.stderr and r.stderr.count("\n") == 1
