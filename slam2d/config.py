@@ -58,8 +58,11 @@ class RealTimeMatcherConfig(_Section):
 
     score_grid: Literal["likelihood_field", "probability"] = Field("likelihood_field", description="What a scan is scored against: a likelihood field (Gaussian of the distance to the nearest occupied cell; Olson 2009) or the hit probabilities (Cartographer).")
     likelihood_field_sigma: float = Field(0.1, gt=0.0, le=1.0, description="Standard deviation of the likelihood field [m] (cut at 3 sigma).")
-    linear_search_window: float = Field(0.15, gt=0.0, description="Half-width of the x/y search window around the predicted pose [m].")
-    angular_search_window_deg: float = Field(5.0, gt=0.0, le=180.0, description="Half-width of the rotation search window [deg].")
+    linear_search_window: float = Field(0.3, gt=0.0, description="Largest half-width of the x/y search window around the predicted pose [m].")
+    angular_search_window_deg: float = Field(10.0, gt=0.0, le=180.0, description="Largest half-width of the rotation search window [deg].")
+    min_linear_search_window: float = Field(0.05, gt=0.0, description="Half-width of the x/y window when the robot did not move [m]; it grows with the motion since the last scan.")
+    min_angular_search_window_deg: float = Field(1.0, gt=0.0, description="Half-width of the rotation window when the robot did not turn [deg].")
+    window_motion_fraction: float = Field(0.7, ge=0.0, description="The windows grow by this fraction of the predicted motion since the last scan (odometry error grows with motion); a best pose on the window's edge repeats the search with the largest windows.")
     branch_depth: int = Field(0, ge=0, le=6, description="Levels of the coarse-to-fine search (0 = exhaustive); results equal the exhaustive search on the same lattice.")
     translation_delta_cost_weight: float = Field(0.1, ge=0.0, description="Scores are multiplied by exp(-(w_t·|Δt| + w_r·|Δθ|)²): prefers the predicted pose where the scan alone cannot decide (Cartographer's default 0.1).")
     rotation_delta_cost_weight: float = Field(0.1, ge=0.0, description="w_r of the same penalty [per rad].")

@@ -43,6 +43,12 @@ class PoseExtrapolator:
         dt = max(time_s - self.last_time, 0.0)
         return compose(self.last_pose, self.velocity * dt)
 
+    def motion(self, predicted) -> np.ndarray:
+        """The predicted motion since the last pose, in the last pose's frame."""
+        if self.last_pose is None:
+            return np.zeros(3)
+        return between(self.last_pose, predicted)
+
     def add(self, time_s, pose, odom):
         if self.last_pose is not None and time_s > self.last_time:
             self.velocity = between(self.last_pose, pose) / (time_s - self.last_time)
@@ -67,6 +73,7 @@ class LocalSlam:
         self.observer = observer
         self.num_matched = 0
         self.num_inserted = 0
+        self.num_escalated = 0
         self.scores: list[float] = []
 
     def add_scan(self, scan) -> MatchingResult:
@@ -81,7 +88,11 @@ class LocalSlam:
         if submap is not None and len(points) >= 3:
             grid = submap.match_grid()
             t1 = time.perf_counter()
-            m = self.matcher.match(grid, predicted, points)
+            rt = self.cfg.real_time_matcher
+            motion = self.extrapolator.motion(predicted)
+            lin = rt.min_linear_search_window + rt.window_motion_fraction * math.hypot(motion[0], motion[1])
+            ang = math.radians(rt.min_angular_search_window_deg) + rt.window_motion_fraction * abs(motion[2])
+            m = self.matcher.match(grid, predicted, points, linear_window=lin, angular_window=ang)
             t2 = time.perf_counter()
             timings["match"] = (t2 - t1) * 1e3
             if m is not None:
@@ -92,6 +103,7 @@ class LocalSlam:
                                      r.max_iterations)
                     timings["refine"] = (time.perf_counter() - t2) * 1e3
                 self.num_matched += 1
+                self.num_escalated += m.escalated
                 self.scores.append(score)
         pose = np.array([pose[0], pose[1], math.remainder(pose[2], 2 * math.pi)])
         self.extrapolator.add(scan.timestamp, pose, scan.odom_pose)
@@ -109,6 +121,7 @@ class LocalSlam:
     def summary(self) -> dict:
         s = np.asarray(self.scores) if self.scores else np.zeros(1)
         return {"local_slam": {"matched_scans": self.num_matched, "inserted_scans": self.num_inserted,
+                               "wide_searches": self.num_escalated,
                                "submaps": self.submaps.count, "finished_submaps": len(self.finished_submaps),
                                "score_mean": round(float(s.mean()), 4), "score_p5": round(float(np.percentile(s, 5)), 4)}}
 

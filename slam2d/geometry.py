@@ -17,10 +17,17 @@ def wrap(a):
     return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
 
 
+def _wrap1(a: float) -> float:
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
 def compose(a, b) -> np.ndarray:
     """a ∘ b for poses (3,) or batches (N, 3) (broadcasting)."""
     a = np.asarray(a, dtype=float)
     b = np.asarray(b, dtype=float)
+    if a.ndim == 1 and b.ndim == 1:
+        c, s = math.cos(a[2]), math.sin(a[2])
+        return np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], _wrap1(a[2] + b[2])])
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
     x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
     y = a[..., 1] + s * b[..., 0] + c * b[..., 1]
@@ -29,6 +36,9 @@ def compose(a, b) -> np.ndarray:
 
 def inverse(a) -> np.ndarray:
     a = np.asarray(a, dtype=float)
+    if a.ndim == 1:
+        c, s = math.cos(a[2]), math.sin(a[2])
+        return np.array([-(c * a[0] + s * a[1]), s * a[0] - c * a[1], _wrap1(-a[2])])
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
     x = -(c * a[..., 0] + s * a[..., 1])
     y = s * a[..., 0] - c * a[..., 1]

@@ -22,8 +22,10 @@ def _apply(logodds, known, prob, stamp, r, c, scan_id, delta, lo_min, lo_max, fl
         v = lo_min
     elif v > lo_max:
         v = lo_max
-    logodds[r, c] = v
     known[r, c] = 1
+    if v == old:  # clamped: most misses land on cells already at the minimum
+        return
+    logodds[r, c] = v
     prob[r, c] = 1.0 / (1.0 + math.exp(-v))
     if (old > 0.0) != (v > 0.0):  # the cell changed between occupied and not occupied
         k = n_flips[0]

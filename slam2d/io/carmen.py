@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import logging
 import math
+import pickle
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -165,6 +167,9 @@ class CarmenLog:
     def __init__(self, path: str | Path):
         self.path = Path(path)
         self._facts: CarmenFacts | None = None
+        # the first pass keeps its parsed laser records in an unnamed temporary file, so the
+        # second pass neither decompresses nor parses again (disk, not memory, grows with the log)
+        self._spool = None
 
     def num_scans(self) -> int:
         return self.facts().num_scans
@@ -177,6 +182,8 @@ class CarmenLog:
 
     def _survey(self) -> CarmenFacts:
         f = CarmenFacts()
+        spool = tempfile.TemporaryFile()
+        dump = pickle.Pickler(spool, protocol=pickle.HIGHEST_PROTOCOL)
         for lineno, kind, parts in self._records():
             if kind == "PARAM":
                 if len(parts) >= 3:
@@ -187,6 +194,8 @@ class CarmenLog:
                 f.num_odom += 1
                 continue
             p = _parse_laser(self.path, lineno, parts)
+            dump.dump((lineno, p))
+            dump.clear_memo()
             f.num_scans += 1
             r = p.ranges[np.isfinite(p.ranges)]
             f.num_readings += p.ranges.size
@@ -199,8 +208,18 @@ class CarmenLog:
                 elif top == f.max_reading:
                     f.max_reading_count += int(np.count_nonzero(r == top))
         if f.num_scans == 0:
+            spool.close()
             raise InputError(self.path, "no laser scans (FLASER, RLASER or ROBOTLASER1 lines) in the file")
+        self._spool = spool
         return f
+
+    def _laser_records(self):
+        """(line number, parsed laser record) from the first pass's spool."""
+        spool = self._spool
+        spool.seek(0)
+        load = pickle.Unpickler(spool)
+        for _ in range(self.facts().num_scans):
+            yield load.load()
 
     def _records(self):
         for lineno, line in iter_lines(self.path):
@@ -224,13 +243,9 @@ class CarmenLog:
         facts = self.facts()
         no_return = facts.no_return_value
         prev_t = None
-        index = 0
-        for lineno, kind, parts in self._records():
-            if kind != "ODOM" and kind != "PARAM":
-                p = _parse_laser(self.path, lineno, parts)
-                yield self._to_scan(p, lineno, index, no_return, prev_t)
-                prev_t = p.timestamp if prev_t is None else max(prev_t, p.timestamp)
-                index += 1
+        for index, (lineno, p) in enumerate(self._laser_records()):
+            yield self._to_scan(p, lineno, index, no_return, prev_t)
+            prev_t = p.timestamp if prev_t is None else max(prev_t, p.timestamp)
 
     def _to_scan(self, p: _Parsed, lineno: int, index: int, no_return, prev_t) -> Scan:
         path = self.path

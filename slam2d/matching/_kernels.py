@@ -82,18 +82,54 @@ def score_candidates(values, cells, cands, unknown):
     return out
 
 
-@njit(cache=True)
-def _cubic_weights(t, w, dw):
+@njit(cache=True, inline="always")
+def _w(t):
     t2 = t * t
     t3 = t2 * t
-    w[0] = 0.5 * (-t3 + 2.0 * t2 - t)
-    w[1] = 0.5 * (3.0 * t3 - 5.0 * t2 + 2.0)
-    w[2] = 0.5 * (-3.0 * t3 + 4.0 * t2 + t)
-    w[3] = 0.5 * (t3 - t2)
-    dw[0] = 0.5 * (-3.0 * t2 + 4.0 * t - 1.0)
-    dw[1] = 0.5 * (9.0 * t2 - 10.0 * t)
-    dw[2] = 0.5 * (-9.0 * t2 + 8.0 * t + 1.0)
-    dw[3] = 0.5 * (3.0 * t2 - 2.0 * t)
+    return (0.5 * (-t3 + 2.0 * t2 - t), 0.5 * (3.0 * t3 - 5.0 * t2 + 2.0),
+            0.5 * (-3.0 * t3 + 4.0 * t2 + t), 0.5 * (t3 - t2))
+
+
+@njit(cache=True, inline="always")
+def _dw(t):
+    t2 = t * t
+    return (0.5 * (-3.0 * t2 + 4.0 * t - 1.0), 0.5 * (9.0 * t2 - 10.0 * t),
+            0.5 * (-9.0 * t2 + 8.0 * t + 1.0), 0.5 * (3.0 * t2 - 2.0 * t))
+
+
+@njit(cache=True)
+def _bicubic(values, u, v, unknown):
+    rows, cols = values.shape
+    uu = u - 0.5
+    vv = v - 0.5
+    i0 = int(math.floor(uu))
+    j0 = int(math.floor(vv))
+    tx = uu - i0
+    ty = vv - j0
+    wx = _w(tx)
+    dwx = _dw(tx)
+    wy = _w(ty)
+    dwy = _dw(ty)
+    f = 0.0
+    fu = 0.0
+    fv = 0.0
+    inside = i0 >= 1 and j0 >= 1 and i0 + 2 < cols and j0 + 2 < rows
+    for jj in range(4):
+        r = j0 - 1 + jj
+        rf = 0.0
+        rdu = 0.0
+        for ii in range(4):
+            c = i0 - 1 + ii
+            if inside or (0 <= r < rows and 0 <= c < cols):
+                val = values[r, c]
+            else:
+                val = unknown
+            rf += wx[ii] * val
+            rdu += dwx[ii] * val
+        f += wy[jj] * rf
+        fu += wy[jj] * rdu
+        fv += dwy[jj] * rf
+    return f, fu, fv
 
 
 @njit(cache=True)
@@ -102,34 +138,24 @@ def bicubic(values, u, v, unknown, out):
 
     Writes (value, d/du, d/dv) into ``out``.
     """
-    rows, cols = values.shape
-    uu = u - 0.5
-    vv = v - 0.5
-    i0 = int(math.floor(uu))
-    j0 = int(math.floor(vv))
-    wx = np.empty(4)
-    dwx = np.empty(4)
-    wy = np.empty(4)
-    dwy = np.empty(4)
-    _cubic_weights(uu - i0, wx, dwx)
-    _cubic_weights(vv - j0, wy, dwy)
-    f = 0.0
-    fu = 0.0
-    fv = 0.0
-    for jj in range(4):
-        r = j0 - 1 + jj
-        for ii in range(4):
-            c = i0 - 1 + ii
-            if r < 0 or r >= rows or c < 0 or c >= cols:
-                val = unknown
-            else:
-                val = values[r, c]
-            f += wy[jj] * wx[ii] * val
-            fu += wy[jj] * dwx[ii] * val
-            fv += dwy[jj] * wx[ii] * val
+    f, fu, fv = _bicubic(values, u, v, unknown)
     out[0] = f
     out[1] = fu
     out[2] = fv
+
+
+@njit(cache=True)
+def _cost(values, ox, oy, res, unknown, points, x, y, t, x0, y0, t0, scale, w_t, w_r):
+    c = math.cos(t)
+    s = math.sin(t)
+    tot = 0.0
+    for i in range(points.shape[0]):
+        px = x + c * points[i, 0] - s * points[i, 1]
+        py = y + s * points[i, 0] + c * points[i, 1]
+        f, _, _ = _bicubic(values, (px - ox) / res, (py - oy) / res, unknown)
+        r = scale * (1.0 - f)
+        tot += r * r
+    return tot + (w_t * (x - x0)) ** 2 + (w_t * (y - y0)) ** 2 + (w_r * (t - t0)) ** 2
 
 
 @njit(cache=True)
@@ -143,44 +169,37 @@ def refine_pose(values, ox, oy, res, unknown, points, x0, y0, t0, w_occ, w_t, w_
     scale = w_occ / math.sqrt(max(n, 1))
     x, y, t = x0, y0, t0
     lam = 1e-3
-    buf = np.empty(3)
-
-    def cost_at(x, y, t):
-        c = math.cos(t)
-        s = math.sin(t)
-        tot = 0.0
-        for i in range(n):
-            px = x + c * points[i, 0] - s * points[i, 1]
-            py = y + s * points[i, 0] + c * points[i, 1]
-            bicubic(values, (px - ox) / res, (py - oy) / res, unknown, buf)
-            r = scale * (1.0 - buf[0])
-            tot += r * r
-        tot += (w_t * (x - x0)) ** 2 + (w_t * (y - y0)) ** 2 + (w_r * (t - t0)) ** 2
-        return tot
-
-    cost = cost_at(x, y, t)
+    cost = _cost(values, ox, oy, res, unknown, points, x, y, t, x0, y0, t0, scale, w_t, w_r)
     it = 0
-    step = 1.0
+    h = np.zeros((3, 3))
+    g = np.zeros(3)
     for it in range(max_iter):
         c = math.cos(t)
         s = math.sin(t)
-        h = np.zeros((3, 3))
-        g = np.zeros(3)
+        h[:, :] = 0.0
+        g[:] = 0.0
         for i in range(n):
             px0 = points[i, 0]
             py0 = points[i, 1]
             px = x + c * px0 - s * py0
             py = y + s * px0 + c * py0
-            bicubic(values, (px - ox) / res, (py - oy) / res, unknown, buf)
-            r = scale * (1.0 - buf[0])
-            gx = -scale * buf[1] / res
-            gy = -scale * buf[2] / res
-            gt = gx * (-s * px0 - c * py0) + gy * (c * px0 - s * py0)
-            jac = (gx, gy, gt)
-            for a in range(3):
-                g[a] += jac[a] * r
-                for b in range(3):
-                    h[a, b] += jac[a] * jac[b]
+            f, fu, fv = _bicubic(values, (px - ox) / res, (py - oy) / res, unknown)
+            r = scale * (1.0 - f)
+            j0 = -scale * fu / res
+            j1 = -scale * fv / res
+            j2 = j0 * (-s * px0 - c * py0) + j1 * (c * px0 - s * py0)
+            g[0] += j0 * r
+            g[1] += j1 * r
+            g[2] += j2 * r
+            h[0, 0] += j0 * j0
+            h[0, 1] += j0 * j1
+            h[0, 2] += j0 * j2
+            h[1, 1] += j1 * j1
+            h[1, 2] += j1 * j2
+            h[2, 2] += j2 * j2
+        h[1, 0] = h[0, 1]
+        h[2, 0] = h[0, 2]
+        h[2, 1] = h[1, 2]
         h[0, 0] += w_t * w_t
         h[1, 1] += w_t * w_t
         h[2, 2] += w_r * w_r
@@ -188,13 +207,14 @@ def refine_pose(values, ox, oy, res, unknown, points, x0, y0, t0, w_occ, w_t, w_
         g[1] += w_t * w_t * (y - y0)
         g[2] += w_r * w_r * (t - t0)
         improved = False
+        step = 0.0
         for _ in range(10):
             hd = h.copy()
             for a in range(3):
                 hd[a, a] += lam * (h[a, a] + 1e-9)
             d = np.linalg.solve(hd, -g)
             nx, ny, nt = x + d[0], y + d[1], t + d[2]
-            nc = cost_at(nx, ny, nt)
+            nc = _cost(values, ox, oy, res, unknown, points, nx, ny, nt, x0, y0, t0, scale, w_t, w_r)
             if nc < cost:
                 x, y, t = nx, ny, nt
                 step = abs(d[0]) + abs(d[1]) + abs(d[2])
@@ -203,6 +223,6 @@ def refine_pose(values, ox, oy, res, unknown, points, x0, y0, t0, w_occ, w_t, w_
                 improved = True
                 break
             lam *= 10.0
-        if not improved or step < 1e-7:
+        if not improved or step < 1e-6:
             break
     return x, y, t, cost, it + 1

@@ -27,9 +27,27 @@ from slam2d.matching.search import (DeltaPenalty, MatchGrid, PrecomputationStack
 class MatchResult:
     pose: np.ndarray          # best lattice pose (x, y, theta)
     score: float              # mean grid value in [0, 1]
-    margin: float | None      # best score minus the best score outside the peak's neighbourhood
-    covariance: np.ndarray | None  # 3×3, from the score distribution
     candidates: int
+    scores: np.ndarray | None = None  # every candidate's score (exhaustive mode)
+    params: SearchParameters | None = None
+    num_points: int = 0
+    on_edge: bool = False     # the best pose lies on the search window's edge
+    escalated: bool = False   # found by the repeated search with the largest windows
+
+    @property
+    def margin(self) -> float | None:
+        """Best score minus the best score outside the peak's neighbourhood (exhaustive mode)."""
+        if self.scores is None:
+            return None
+        a, iy, ix = np.unravel_index(int(np.argmax(self.scores)), self.scores.shape)
+        return _margin(self.scores, a, iy, ix)
+
+    @property
+    def covariance(self) -> np.ndarray | None:
+        """3×3 covariance from the score distribution (exhaustive mode), computed on demand."""
+        if self.scores is None:
+            return None
+        return _covariance(self.scores, self.params, self.num_points)
 
 
 class RealTimeCorrelativeScanMatcher:
@@ -40,8 +58,22 @@ class RealTimeCorrelativeScanMatcher:
         self.branch_depth = branch_depth
         self.penalty = DeltaPenalty(translation_delta_cost_weight, rotation_delta_cost_weight)
 
-    def match(self, grid: MatchGrid, predicted, points: np.ndarray, min_score: float = 0.0) -> MatchResult | None:
-        params = SearchParameters.make(self.linear_window, self.angular_window, grid.resolution, points)
+    def match(self, grid: MatchGrid, predicted, points: np.ndarray, min_score: float = 0.0,
+              linear_window: float | None = None, angular_window: float | None = None) -> MatchResult | None:
+        """Best pose around ``predicted``; smaller windows than the configured ones may be given
+        (then a best pose on the window's edge repeats the search with the configured windows)."""
+        lin = self.linear_window if linear_window is None else min(linear_window, self.linear_window)
+        ang = self.angular_window if angular_window is None else min(angular_window, self.angular_window)
+        res = self._match(grid, predicted, points, min_score, lin, ang)
+        if res is not None and res.on_edge and (lin < self.linear_window or ang < self.angular_window):
+            wide = self._match(grid, predicted, points, min_score, self.linear_window, self.angular_window)
+            if wide is not None:
+                wide.escalated = True
+                return wide
+        return res
+
+    def _match(self, grid, predicted, points, min_score, linear_window, angular_window):
+        params = SearchParameters.make(linear_window, angular_window, grid.resolution, points)
         cells = grid.cells(points, predicted, params.angles)
         w = params.linear_cells
         res = grid.resolution
@@ -53,14 +85,16 @@ class RealTimeCorrelativeScanMatcher:
                 return None
             a, dx, dy, score = found
             pose = np.array([predicted[0] + dx * res, predicted[1] + dy * res, predicted[2] + params.angles[a]])
-            return MatchResult(pose, score, None, None, n_cand)
+            edge = max(abs(dx), abs(dy)) == w or a in (0, len(params.angles) - 1)
+            return MatchResult(pose, score, n_cand, on_edge=edge)
         scores = exhaustive(grid, cells, w, self.penalty, params.angles)
         a, iy, ix = np.unravel_index(int(np.argmax(scores)), scores.shape)
         best = float(scores[a, iy, ix])
         if best <= min_score:
             return None
         pose = np.array([predicted[0] + (ix - w) * res, predicted[1] + (iy - w) * res, predicted[2] + params.angles[a]])
-        return MatchResult(pose, best, _margin(scores, a, iy, ix), _covariance(scores, params, points.shape[0]), n_cand)
+        edge = iy in (0, 2 * w) or ix in (0, 2 * w) or a in (0, len(params.angles) - 1)
+        return MatchResult(pose, best, n_cand, scores, params, points.shape[0], on_edge=edge)
 
 
 def _margin(scores, a, iy, ix, lin=2, ang=2) -> float:
