@@ -49,6 +49,7 @@ def voxel_filter(points: np.ndarray, size: float) -> np.ndarray:
     """One point per square cell of ``size`` (the first in input order), like Cartographer's voxel filter."""
     if size <= 0 or len(points) == 0:
         return points
-    keys = np.floor(points / size).astype(np.int64)
-    _, idx = np.unique(keys, axis=0, return_index=True)
+    k = np.floor(points / size).astype(np.int64)
+    keys = (k[:, 0] << 32) ^ (k[:, 1] & 0xFFFFFFFF)
+    _, idx = np.unique(keys, return_index=True)
     return points[np.sort(idx)]

@@ -11,18 +11,17 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True)
-def _apply(logodds, known, prob, stamp, r, c, scan_id, delta, lo_min, lo_max, flips, n_flips):
+@njit(cache=True, inline="always")
+def _apply(logodds, prob, stamp, r, c, scan_id, delta, lo_min, lo_max, flips, n_flips):
     if stamp[r, c] == scan_id:
         return
-    stamp[r, c] = scan_id
+    stamp[r, c] = scan_id  # a cell is known once any scan updated it (stamp > 0)
     old = logodds[r, c]
     v = old + delta
     if v < lo_min:
         v = lo_min
     elif v > lo_max:
         v = lo_max
-    known[r, c] = 1
     if v == old:  # clamped: most misses land on cells already at the minimum
         return
     logodds[r, c] = v
@@ -36,7 +35,7 @@ def _apply(logodds, known, prob, stamp, r, c, scan_id, delta, lo_min, lo_max, fl
 
 
 @njit(cache=True)
-def insert_rays(logodds, known, prob, stamp, scan_id, ox, oy, ends, is_hit, hit_delta, miss_delta, lo_min, lo_max,
+def insert_rays(logodds, prob, stamp, scan_id, ox, oy, ends, is_hit, hit_delta, miss_delta, lo_min, lo_max,
                 flips, n_flips):
     """Insert rays from (ox, oy) to ``ends`` (M, 2), all in cell units (continuous, lower-left origin).
 
@@ -54,7 +53,7 @@ def insert_rays(logodds, known, prob, stamp, scan_id, ox, oy, ends, is_hit, hit_
             c = int(math.floor(ends[i, 0]))
             r = int(math.floor(ends[i, 1]))
             if 0 <= r < rows and 0 <= c < cols:
-                _apply(logodds, known, prob, stamp, r, c, scan_id, hit_delta, lo_min, lo_max, flips, n_flips)
+                _apply(logodds, prob, stamp, r, c, scan_id, hit_delta, lo_min, lo_max, flips, n_flips)
     for i in range(m):
         ex = ends[i, 0]
         ey = ends[i, 1]
@@ -83,10 +82,10 @@ def insert_rays(logodds, known, prob, stamp, scan_id, ox, oy, ends, is_hit, hit_
         for _ in range(n_steps + 1):
             if cx == tx and cy == ty:
                 if not is_hit[i] and 0 <= cy < rows and 0 <= cx < cols:
-                    _apply(logodds, known, prob, stamp, cy, cx, scan_id, miss_delta, lo_min, lo_max, flips, n_flips)
+                    _apply(logodds, prob, stamp, cy, cx, scan_id, miss_delta, lo_min, lo_max, flips, n_flips)
                 break
             if 0 <= cy < rows and 0 <= cx < cols:
-                _apply(logodds, known, prob, stamp, cy, cx, scan_id, miss_delta, lo_min, lo_max, flips, n_flips)
+                _apply(logodds, prob, stamp, cy, cx, scan_id, miss_delta, lo_min, lo_max, flips, n_flips)
             if t_max_x < t_max_y:
                 t_max_x += t_delta_x
                 cx += step_x
@@ -131,30 +130,41 @@ def stamp_field(field, logodds, flips, n, kernel, radius):
                     v = kernel[dr + radius, dc + radius]
                     if v > field[rr, cc]:
                         field[rr, cc] = v
+    # around a cell that stopped being occupied, every cell within the radius is recomputed:
+    # marked dirty (value − 2), then every occupied cell within the radius of it stamps the
+    # kernel onto the dirty cells, and the marks are lifted
     for k in range(n):
         r = flips[k, 0]
         c = flips[k, 1]
         if logodds[r, c] > 0.0:
             continue
-        for dr in range(-radius, radius + 1):
-            rr = r + dr
-            if rr < 0 or rr >= rows:
-                continue
-            for dc in range(-radius, radius + 1):
-                cc = c + dc
-                if cc < 0 or cc >= cols:
+        for rr in range(max(r - radius, 0), min(r + radius + 1, rows)):
+            for cc in range(max(c - radius, 0), min(c + radius + 1, cols)):
+                if field[rr, cc] >= -0.5:
+                    field[rr, cc] = -2.0
+    reach = 2 * radius
+    for k in range(n):
+        r = flips[k, 0]
+        c = flips[k, 1]
+        if logodds[r, c] > 0.0:
+            continue
+        for orow in range(max(r - reach, 0), min(r + reach + 1, rows)):
+            for ocol in range(max(c - reach, 0), min(c + reach + 1, cols)):
+                if logodds[orow, ocol] <= 0.0:
                     continue
-                best = 0.0
-                for er in range(-radius, radius + 1):
-                    r2 = rr + er
-                    if r2 < 0 or r2 >= rows:
-                        continue
-                    for ec in range(-radius, radius + 1):
-                        c2 = cc + ec
-                        if c2 < 0 or c2 >= cols:
-                            continue
-                        if logodds[r2, c2] > 0.0:
-                            v = kernel[er + radius, ec + radius]
-                            if v > best:
-                                best = v
-                field[rr, cc] = best
+                for rr in range(max(orow - radius, 0), min(orow + radius + 1, rows)):
+                    for cc in range(max(ocol - radius, 0), min(ocol + radius + 1, cols)):
+                        f = field[rr, cc]
+                        if f < -0.5:
+                            v = kernel[rr - orow + radius, cc - ocol + radius] - 2.0
+                            if v > f:
+                                field[rr, cc] = v
+    for k in range(n):
+        r = flips[k, 0]
+        c = flips[k, 1]
+        if logodds[r, c] > 0.0:
+            continue
+        for rr in range(max(r - radius, 0), min(r + radius + 1, rows)):
+            for cc in range(max(c - radius, 0), min(c + radius + 1, cols)):
+                if field[rr, cc] < -0.5:
+                    field[rr, cc] += 2.0

@@ -46,9 +46,9 @@ class ProbabilityGrid:
         self.unknown_probability = min_probability if unknown_probability is None else unknown_probability
         self.origin = np.array(origin, dtype=float)
         self.logodds = np.zeros(shape, dtype=np.float32)
-        self.known = np.zeros(shape, dtype=np.uint8)
         self.prob = np.full(shape, self.unknown_probability, dtype=np.float32)
         self.stamp = np.zeros(shape, dtype=np.int32)
+        self._known = None  # frozen grids keep a known mask instead of stamps
         self.scan_id = 0
         # likelihood field: Gaussian of the distance to the nearest occupied cell, cut at 3 sigma
         self.field_sigma = field_sigma
@@ -63,7 +63,7 @@ class ProbabilityGrid:
                    grid_cfg.min_probability, grid_cfg.max_probability, field_sigma=field_sigma)
 
     def _arrays(self):
-        out = [("logodds", np.float32, 0), ("known", np.uint8, 0), ("stamp", np.int32, 0),
+        out = [("logodds", np.float32, 0), ("stamp", np.int32, 0),
                ("prob", np.float32, self.unknown_probability)]
         if self.field_sigma:
             out.append(("field", np.float32, 0))
@@ -72,6 +72,24 @@ class ProbabilityGrid:
     @property
     def shape(self):
         return self.logodds.shape
+
+    @property
+    def known(self) -> np.ndarray:
+        """1 where some scan updated the cell (observed), else 0."""
+        if self._known is not None:
+            return self._known
+        return (self.stamp > 0).view(np.uint8)
+
+    def freeze(self, r0, r1, c0, c1):
+        """Crop to [r0:r1, c0:c1] and drop the insertion buffers (no more inserts)."""
+        known = np.ascontiguousarray(self.known[r0:r1, c0:c1])
+        self.logodds = np.ascontiguousarray(self.logodds[r0:r1, c0:c1])
+        self.prob = np.ascontiguousarray(self.prob[r0:r1, c0:c1])
+        if self.field_sigma:
+            self.field = np.ascontiguousarray(self.field[r0:r1, c0:c1])
+        self.origin = self.origin + np.array([c0, r0]) * self.resolution
+        self._known = known
+        self.stamp = np.zeros((0, 0), dtype=np.int32)
 
     def ensure_contains(self, xmin, ymin, xmax, ymax):
         """Grow the grid (keeping its content and cell alignment) so the box fits."""
@@ -118,7 +136,7 @@ class ProbabilityGrid:
         self.scan_id += 1
         flips = np.empty((4 * len(ends) + 256, 2), dtype=np.int32)
         n_flips = np.zeros(1, dtype=np.int64)
-        _kernels.insert_rays(self.logodds, self.known, self.prob, self.stamp, self.scan_id, float(o[0]), float(o[1]),
+        _kernels.insert_rays(self.logodds, self.prob, self.stamp, self.scan_id, float(o[0]), float(o[1]),
                              np.ascontiguousarray(cells), is_hit, self.hit_delta, self.miss_delta,
                              self.lo_min, self.lo_max, flips, n_flips)
         if self.field_sigma:

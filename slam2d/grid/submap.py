@@ -43,14 +43,7 @@ class Submap:
         g = self.grid
         b = g.known_bounds()
         if b is not None:
-            r0, r1, c0, c1 = b
-            g.logodds = np.ascontiguousarray(g.logodds[r0:r1, c0:c1])
-            g.known = np.ascontiguousarray(g.known[r0:r1, c0:c1])
-            g.prob = np.ascontiguousarray(g.prob[r0:r1, c0:c1])
-            if g.field_sigma:
-                g.field = np.ascontiguousarray(g.field[r0:r1, c0:c1])
-            g.origin = g.origin + np.array([c0, r0]) * g.resolution
-        g.stamp = np.zeros((0, 0), dtype=np.int32)
+            g.freeze(*b)
 
 
 class ActiveSubmaps:
