@@ -51,6 +51,9 @@ def build_parser() -> argparse.ArgumentParser:
     mode.add_argument("--no-loop-closure", action="store_true", help="local SLAM only (no global optimization)")
     p.add_argument("--max-scans", type=int, default=None, help="stop after this many scans")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--rerun", metavar="RRD", default=None, help="write a Rerun recording of the whole run to this .rrd")
+    p.add_argument("--viewer", action="store_true", help="stream the run live to a spawned Rerun viewer")
+    p.add_argument("--mcap", action="store_true", help="also write DIR/results.mcap (scans, poses, TF, map; ROS 2)")
 
     p = sub.add_parser("info", help="describe a log: scans, duration, beams, ranges, odometry",
                        epilog="example:\n  slam2d info ../shared/datasets/intel/intel.clf.bz2 --json",
@@ -70,6 +73,10 @@ def build_parser() -> argparse.ArgumentParser:
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("output", help="output .mcap file")
     p.add_argument("--seed", type=int, default=7, help="random seed (same seed, same bytes)")
+
+    p = sub.add_parser("view", help="open a Rerun recording (.rrd) in the Rerun viewer",
+                       epilog="example:\n  slam2d view runs/intel/run.rrd", formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("rrd", help="a recording written by slam2d run --rerun")
 
     p = sub.add_parser("dump-config", help="print every option with its default and description")
     p.add_argument("--config", default=None, help="print this config file's values instead of the defaults")
@@ -121,24 +128,73 @@ def cmd_run(args) -> int:
         from slam2d.frontend import LocalSlam
 
         tracker, mode = LocalSlam(cfg), "local"
+    viz = None
+    rrd_tmp = None
+    if args.rerun or args.viewer:
+        if args.rerun and not args.rerun.endswith(".rrd"):
+            raise UsageError(f"{args.rerun}: a Rerun recording must end in .rrd")
+        from slam2d.viz.rerun import RerunObserver
+
+        rrd_tmp = f"{args.rerun}.partial" if args.rerun else None
+        viz = RerunObserver(path=rrd_tmp, spawn=args.viewer)
     try:
         with _progress(total, args.no_progress, "slam2d") as bar:
-            result = Mapper(cfg, tracker).run(_limited(src, args.max_scans), progress=bar)
+            mapper = Mapper(cfg, tracker, viz)
+            result = mapper.run(_limited(src, args.max_scans), progress=bar, info={"input": args.input, "mode": mode})
         t_map = time.perf_counter()
         grid = build_map(cfg, result.nodes)
         wall_map = time.perf_counter() - t_map
         out.write_trajectory("trajectory.txt", result.stamps, result.poses)
         out.write_map(grid, cfg)
         out.write_text("config.yaml", config_text(cfg))
+        if args.mcap:
+            from slam2d.grid.map_export import occupancy_image
+            from slam2d.io.results_mcap import write_results_mcap
+
+            img, ox, oy = occupancy_image(grid, cfg.map.occupied_thresh, cfg.map.free_thresh)
+            write_results_mcap(out.staged("results.mcap"), _limited(_source(args), args.max_scans), result.poses,
+                               img, grid.resolution, (ox, oy))
+        if viz is not None:
+            viz.log_final(len(result.stamps) - 1, grid, result.poses, *_graph(tracker, result),
+                          {"scans": len(result.stamps), "nodes": len(result.nodes)})
+            viz.close()
         wall = time.perf_counter() - t0
         out.write_json("summary.json", run_summary(args.input, mode, result, wall, wall_map, tracker))
         out.commit()
+        if rrd_tmp:
+            import os
+
+            os.replace(rrd_tmp, args.rerun)
     except BaseException:
         out.abort()
+        if rrd_tmp:
+            Path(rrd_tmp).unlink(missing_ok=True)
         raise
     log.info("wrote %s (%d scans, %.1f s)", args.out, len(result.stamps), wall)
     print(f"{len(result.stamps)} scans -> {args.out} in {wall:.1f} s")
     return 0
+
+
+def _graph(tracker, result):
+    """Node positions and node-in-submap segments for visualization."""
+    import numpy as np
+
+    nodes = np.array([n.local_pose[:2] for n in result.nodes]).reshape(-1, 2)
+    segs = []
+    pose_of = {n.scan_index: n.local_pose for n in result.nodes}
+    for sub in getattr(tracker, "all_submaps", lambda: [])():
+        for i in sub.node_indices:
+            if i in pose_of:
+                segs.append((pose_of[i][:2], sub.local_pose[:2]))
+    return nodes, np.array(segs).reshape(-1, 2, 2)
+
+
+def cmd_view(args) -> int:
+    if not Path(args.rrd).exists():
+        raise UsageError(f"{args.rrd}: no such file")
+    from slam2d.viz.rerun import view
+
+    return view(args.rrd)
 
 
 def cmd_info(args) -> int:
@@ -213,7 +269,7 @@ def cmd_dump_config(args) -> int:
 
 
 COMMANDS = {"run": cmd_run, "info": cmd_info, "convert": cmd_convert, "simulate": cmd_simulate,
-            "dump-config": cmd_dump_config}
+            "dump-config": cmd_dump_config, "view": cmd_view}
 
 
 def main(argv=None) -> int:

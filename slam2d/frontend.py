@@ -108,6 +108,7 @@ class LocalSlam:
         pose = np.array([pose[0], pose[1], math.remainder(pose[2], 2 * math.pi)])
         self.extrapolator.add(scan.timestamp, pose, scan.odom_pose)
         inserted = not self.filter.is_similar(scan.timestamp, pose)
+        finished = []
         if inserted:
             t3 = time.perf_counter()
             local = rd.transformed(pose)
@@ -116,7 +117,11 @@ class LocalSlam:
             self.num_inserted += 1
             timings["insert"] = (time.perf_counter() - t3) * 1e3
         timings["total"] = (time.perf_counter() - t0) * 1e3
-        return MatchingResult(scan.timestamp, pose, rd, inserted, score, timings)
+        return MatchingResult(scan.timestamp, pose, rd, inserted, score, timings,
+                              active_submap=self.submaps.matching_submap, finished_submaps=finished)
+
+    def all_submaps(self):
+        return list(self.finished_submaps) + list(self.submaps.submaps)
 
     def summary(self) -> dict:
         s = np.asarray(self.scores) if self.scores else np.zeros(1)

@@ -30,6 +30,8 @@ class MatchingResult:
     inserted: bool
     score: float | None = None
     timings: dict = field(default_factory=dict)
+    active_submap: object = None          # the submap this scan was matched against (local SLAM)
+    finished_submaps: list = field(default_factory=list)  # submaps this insertion finished
 
 
 class OdometryTracker:
@@ -79,12 +81,13 @@ class Mapper:
         self.tracker = tracker
         self.observer = observer or Observer()
 
-    def run(self, source, progress=None) -> RunResult:
+    def run(self, source, progress=None, info: dict | None = None) -> RunResult:
         stamps, times, poses, nodes = [], [], [], []
         counts = {"scans": 0, "nodes": 0, "invalid_readings": 0, "no_return_readings": 0, "readings": 0,
                   "timestamp_reversals": 0, "beams_min": None, "beams_max": None}
         stage_ms: dict[str, list[float]] = {}
         last_t = None
+        self.observer.on_start(info or {})
         for scan in source:
             t0 = time.perf_counter()
             res = self.tracker.add_scan(scan)

@@ -73,6 +73,12 @@ def bench_dataset(name: str, args, outdir: Path) -> dict:
                      "duration_s": summary["duration_s"], "real_time_factor": summary["duration_s"] / r["wall_s"],
                      "relations": m, "timings": summary.get("timings", {}), "mode": summary.get("mode"),
                      "loop_closure": summary.get("loop_closure")}
+    if args.rerun:
+        rrd = outdir / f"{name}.rrd"
+        rv = timed(slam + ["--out", str(outdir / f"{name}_rerun"), "--rerun", str(rrd)] + args.extra)
+        if rv["returncode"] == 0:
+            row["rerun"] = {"wall_s": rv["wall_s"], "peak_rss_mb": rv["peak_rss_mb"], "rrd_mb": rrd.stat().st_size / 2 ** 20,
+                            "overhead": rv["wall_s"] / r["wall_s"] - 1.0}
     o = timed(slam + ["--out", str(outdir / f"{name}_odometry"), "--odometry-only"])
     row["odometry"] = {"relations": relations_of(outdir / f"{name}_odometry" / "trajectory.txt", rel)}
     if args.peers:
@@ -134,6 +140,7 @@ def main(argv=None) -> int:
     ap.add_argument("--datasets", default=None, help="comma-separated names (default: every folder in ../shared/datasets)")
     ap.add_argument("--config", default=str(ROOT / "configs" / "default.yaml"))
     ap.add_argument("--peers", action="store_true", help="also run ../shared/tools/peer_karto.py (needs karto-scanmatcher)")
+    ap.add_argument("--rerun", action="store_true", help="also time each run with --rerun (recording cost and size)")
     ap.add_argument("--jobs", type=int, default=1, help="datasets run in parallel (default 1: timings undisturbed)")
     ap.add_argument("--out", default=str(ROOT / "benchmarks"), help="folder for runs and plots")
     ap.add_argument("--markdown", default=str(ROOT / "BENCHMARKS.md"))
@@ -160,12 +167,22 @@ def main(argv=None) -> int:
             "python": platform.python_version(), "config": os.path.relpath(args.config, ROOT),
             "extra_args": args.extra, "jobs": args.jobs}
     (ROOT / "benchmarks.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2, default=float) + "\n")
+    flags = "".join(f" --{f}" for f in ("peers", "rerun") if getattr(args, f))
     md = [f"# Benchmarks", "",
-          f"`python tools/benchmark.py{' --peers' if args.peers else ''}` on {meta['date']} ({meta['machine']}, "
+          f"`python tools/benchmark.py{flags}` on {meta['date']} ({meta['machine']}, "
           f"Python {meta['python']}), config `{meta['config']}`{', slam2d run ' + ' '.join(args.extra) if args.extra else ''}. "
           "Wall time and peak RSS are those of the whole process; accuracy is the relations metric "
           "(Kümmerle et al. 2009) on each dataset's `.relations`. Cartographer's rows are its published figures "
           "(Hess et al. 2016, Tables II and V; wall clock on a 6-core Xeon).", "", table(rows, args), ""]
+    if any("rerun" in row for row in rows):
+        md += ["Cost of `--rerun` (same run, recording to an .rrd):", "",
+               "| dataset | wall s without | wall s with --rerun | overhead | .rrd MB | peak RSS MB with |", "|---|---|---|---|---|---|"]
+        for row in rows:
+            if "rerun" in row:
+                rv = row["rerun"]
+                md.append(f"| {row['dataset']} | {row['slam2d']['wall_s']:.1f} | {rv['wall_s']:.1f} | {100 * rv['overhead']:+.0f} % | "
+                          f"{rv['rrd_mb']:.0f} | {rv['peak_rss_mb']:.0f} |")
+        md.append("")
     for row in rows:
         a = row["slam2d"].get("ate_vs_corrected_log")
         if a:

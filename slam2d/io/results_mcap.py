@@ -1,0 +1,54 @@
+"""``DIR/results.mcap``: a run's results in the ROS 2 profile, for Foxglove and ROS 2 tools.
+
+Topics: the input scans (``/scan``, ``/odom``), ``/slam2d/pose`` (``geometry_msgs/msg/PoseStamped``,
+the final pose of every scan, frame ``map``), ``/tf`` (``tf2_msgs/msg/TFMessage``:
+map→odom and odom→base_link at every scan, as a ROS SLAM node publishes them) and ``/map``
+(``nav_msgs/msg/OccupancyGrid``, the final map: 100 occupied, 0 free, −1 unknown, exactly
+the cells of ``map.pgm``).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from slam2d.geometry import compose, inverse
+from slam2d.grid.map_export import FREE, OCCUPIED, UNKNOWN
+from slam2d.io.mcap import McapWriter, _header, _pose_dict, _stamp_of
+
+
+def _tf(parent, child, pose, sec, nsec):
+    q = _pose_dict(pose)["orientation"]
+    return {"header": _header(sec, nsec, parent), "child_frame_id": child,
+            "transform": {"translation": {"x": float(pose[0]), "y": float(pose[1]), "z": 0.0}, "rotation": q}}
+
+
+def occupancy_grid_msg(img_top_first: np.ndarray, resolution: float, origin_xy, sec, nsec) -> dict:
+    rows = img_top_first[::-1]  # OccupancyGrid rows start at the origin (bottom)
+    data = np.full(rows.shape, -1, dtype=np.int8)
+    data[rows == OCCUPIED] = 100
+    data[rows == FREE] = 0
+    assert np.all((rows == OCCUPIED) | (rows == FREE) | (rows == UNKNOWN))
+    h, w = rows.shape
+    return {"header": _header(sec, nsec, "map"),
+            "info": {"map_load_time": {"sec": sec, "nanosec": nsec}, "resolution": float(resolution),
+                     "width": int(w), "height": int(h),
+                     "origin": _pose_dict((float(origin_xy[0]), float(origin_xy[1]), 0.0))},
+            "data": data.ravel().tolist()}
+
+
+def write_results_mcap(path, source, poses: np.ndarray, map_img, resolution, origin_xy) -> int:
+    n = 0
+    with open(path, "wb") as f:
+        w = McapWriter(f)
+        sec = nsec = 0
+        for scan, pose in zip(source, poses):
+            w.write_scan(scan)
+            sec, nsec = _stamp_of(scan)
+            w.write_pose("/slam2d/pose", pose, sec, nsec, "map")
+            odom = scan.odom_pose if scan.odom_pose is not None else np.zeros(3)
+            map_to_odom = compose(pose, inverse(odom))
+            w.write("/tf", "tf2_msgs/TFMessage", {"transforms": [_tf("map", "odom", map_to_odom, sec, nsec),
+                                                                 _tf("odom", "base_link", odom, sec, nsec)]}, sec, nsec)
+            n += 1
+        w.write("/map", "nav_msgs/OccupancyGrid", occupancy_grid_msg(map_img, resolution, origin_xy, sec, nsec), sec, nsec)
+        w.finish()
+    return n

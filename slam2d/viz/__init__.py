@@ -1,0 +1,1 @@
+"""Visualization: the only place that imports rerun (through the observer interface)."""

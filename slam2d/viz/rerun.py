@@ -1,0 +1,204 @@
+"""Rerun logging of a slam2d run (rerun-sdk 0.41), attached as an `Observer`.
+
+Entities (all in the ``/world`` frame, metres):
+
+* ``/world/scan/hits``, ``/world/scan/no_return`` — each scan's points and the ends of its
+  free-space rays (no-return beams and readings beyond the range filter), per scan;
+* ``/world/robot`` (arrow), ``/world/trajectory`` (line strip, throttled);
+* ``/world/submaps/active`` (GridMap, throttled) and ``/world/submaps/<k>`` (finished ones,
+  re-logged at new poses after each optimization);
+* ``/world/graph/nodes``, ``/world/graph/node_in_submap``, ``/world/graph/loops``,
+  ``/world/graph/rejected`` — the pose graph, in distinct colours;
+* ``/world/map`` — the final occupancy map;
+* ``/metrics/timing/*``, ``/metrics/score/*`` — Scalars; ``/events`` — TextLog.
+
+Timelines: ``scan`` (sequence) and ``time`` (sensor time). Per-scan data is buffered and
+sent with ``send_columns`` in blocks, so logging costs little per scan.
+"""
+from __future__ import annotations
+
+
+import os
+
+import numpy as np
+
+from slam2d.geometry import transform_points
+from slam2d.observer import Observer
+
+os.environ.setdefault("RERUN_ANALYTICS", "0")
+
+import rerun as rr  # noqa: E402
+import rerun.blueprint as rrb  # noqa: E402
+
+HIT = (230, 80, 40, 255)
+NO_RETURN = (90, 140, 255, 160)
+TRAJ = (40, 170, 90, 255)
+INTRA = (160, 160, 160, 120)
+LOOP = (40, 200, 60, 255)
+REJECTED = (220, 40, 40, 200)
+
+
+def blueprint():
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial2DView(name="map", origin="/world"),
+            rrb.Vertical(
+                rrb.TimeSeriesView(name="timings [ms]", origin="/metrics/timing"),
+                rrb.TimeSeriesView(name="match scores", origin="/metrics/score"),
+                rrb.TextLogView(name="events", origin="/events"),
+            ),
+            column_shares=[3, 2],
+        ),
+        collapse_panels=False,
+    )
+
+
+def occupancy_bytes(grid) -> tuple[bytes, int, int]:
+    """ROS OccupancyGrid convention (0 free … 100 occupied, 255 unknown), row 0 at the bottom."""
+    p = grid.probability(unknown_value=np.nan)
+    out = np.full(p.shape, 255, dtype=np.uint8)
+    k = ~np.isnan(p)
+    out[k] = np.clip(np.round(p[k] * 100), 0, 100).astype(np.uint8)
+    return out.tobytes(), p.shape[1], p.shape[0]
+
+
+def grid_map(grid) -> rr.GridMap:
+    data, w, h = occupancy_bytes(grid)
+    return rr.GridMap(data=data, format=rr.components.ImageFormat(width=w, height=h, color_model="L", channel_datatype="U8"),
+                      cell_size=grid.resolution, translation=[float(grid.origin[0]), float(grid.origin[1]), 0.0],
+                      colormap=rr.components.Colormap.RvizMap)
+
+
+class RerunObserver(Observer):
+    def __init__(self, path: str | None = None, spawn: bool = False, flush_every: int = 200,
+                 trajectory_every: int = 50, submap_every: int = 20):
+        rr.init("slam2d", spawn=spawn, default_blueprint=blueprint())
+        if path:
+            rr.save(path, default_blueprint=blueprint())
+        self.flush_every = flush_every
+        self.trajectory_every = trajectory_every
+        self.submap_every = submap_every
+        self._buf = self._empty()
+        self._traj = []
+        self._seq = 0
+        self._inserted = 0
+        self._logged_finished = set()
+
+    @staticmethod
+    def _empty():
+        return {"seq": [], "t": [], "hits": [], "misses": [], "pose": [], "score": [], "timings": {}}
+
+    def _time_kw(self, t):
+        return {"timestamp": t} if t > 1e8 else {"duration": t}
+
+    def on_start(self, info: dict) -> None:
+        rr.log("/events", rr.TextLog(f"slam2d run on {info.get('input')} ({info.get('mode')})",
+                                     level=rr.TextLogLevel.INFO), static=True)
+
+    def on_scan(self, scan, result) -> None:
+        pose = np.asarray(result.local_pose, dtype=float)
+        rd = result.range_data
+        b = self._buf
+        b["seq"].append(self._seq)
+        b["t"].append(scan.timestamp)
+        b["hits"].append(transform_points(pose, rd.hits).astype(np.float32))
+        b["misses"].append(transform_points(pose, rd.misses).astype(np.float32))
+        b["pose"].append(pose)
+        b["score"].append(np.nan if result.score is None else float(result.score))
+        for k, v in result.timings.items():
+            b["timings"].setdefault(k, {})[self._seq] = v
+        self._traj.append(pose[:2].copy())
+        self._seq += 1
+        if result.inserted:
+            self._inserted += 1
+            sub = getattr(result, "active_submap", None)
+            if sub is not None and self._inserted % self.submap_every == 0:
+                rr.set_time("scan", sequence=self._seq - 1)
+                rr.set_time("time", **self._time_kw(scan.timestamp))
+                rr.log("/world/submaps/active", grid_map(sub.grid))
+        for sub in getattr(result, "finished_submaps", ()) or ():
+            self.on_submap_finished(sub)
+        if self._seq % self.trajectory_every == 0:
+            rr.set_time("scan", sequence=self._seq - 1)
+            rr.set_time("time", **self._time_kw(scan.timestamp))
+            rr.log("/world/trajectory", rr.LineStrips2D([np.array(self._traj, dtype=np.float32)], colors=[TRAJ], radii=[0.02]))
+        if len(b["seq"]) >= self.flush_every:
+            self.flush()
+
+    def flush(self) -> None:
+        b = self._buf
+        if not b["seq"]:
+            return
+        seq = np.asarray(b["seq"])
+        t = np.asarray(b["t"])
+        idx = [rr.TimeColumn("scan", sequence=seq),
+               rr.TimeColumn("time", **({"timestamp": t} if t.min() > 1e8 else {"duration": t}))]
+        for name, key, color in (("hits", "hits", HIT), ("no_return", "misses", NO_RETURN)):
+            arrays = b[key]
+            lengths = [len(a) for a in arrays]
+            pos = np.concatenate(arrays) if sum(lengths) else np.zeros((0, 2), np.float32)
+            cols = rr.Points2D.columns(positions=pos, colors=np.tile(np.array(color, np.uint8), (len(pos), 1)),
+                                       radii=np.full(len(pos), 0.03, np.float32)).partition(lengths)
+            rr.send_columns(f"/world/scan/{name}", indexes=idx, columns=cols)
+        poses = np.asarray(b["pose"])
+        vec = 0.4 * np.column_stack([np.cos(poses[:, 2]), np.sin(poses[:, 2])])
+        rr.send_columns("/world/robot", indexes=idx,
+                        columns=rr.Arrows2D.columns(origins=poses[:, :2], vectors=vec))
+        sc = np.asarray(b["score"])
+        ok = ~np.isnan(sc)
+        if ok.any():
+            rr.send_columns("/metrics/score/local_match", indexes=[rr.TimeColumn("scan", sequence=seq[ok])],
+                            columns=rr.Scalars.columns(scalars=sc[ok]))
+        for k, d in b["timings"].items():
+            s = np.fromiter(d.keys(), dtype=np.int64)
+            v = np.fromiter(d.values(), dtype=np.float64)
+            rr.send_columns(f"/metrics/timing/{k}", indexes=[rr.TimeColumn("scan", sequence=s)],
+                            columns=rr.Scalars.columns(scalars=v))
+        self._buf = self._empty()
+
+    def on_submap_finished(self, submap) -> None:
+        if submap.index in self._logged_finished:
+            return
+        self._logged_finished.add(submap.index)
+        rr.log(f"/world/submaps/{submap.index}", grid_map(submap.grid), static=True)
+        rr.log("/events", rr.TextLog(f"submap {submap.index} finished ({submap.num_range_data} scans)",
+                                     level=rr.TextLogLevel.INFO))
+
+    def on_constraints(self, seq, nodes, node_in_submap, loops=(), rejected=()) -> None:
+        """Pose graph: node positions (N, 2) and constraints as (M, 2, 2) segment arrays."""
+        rr.set_time("scan", sequence=seq)
+        rr.log("/world/graph/nodes", rr.Points2D(nodes, radii=0.04, colors=[(250, 200, 0, 255)]))
+        for name, segs, color in (("node_in_submap", node_in_submap, INTRA), ("loops", loops, LOOP),
+                                  ("rejected", rejected, REJECTED)):
+            if len(segs):
+                rr.log(f"/world/graph/{name}", rr.LineStrips2D(list(np.asarray(segs, np.float32)), colors=[color],
+                                                                 radii=[0.01]))
+
+    def on_finish(self, mapper) -> None:
+        self.flush()
+
+    def log_final(self, seq, grid, poses, nodes, node_in_submap, stats: dict) -> None:
+        rr.set_time("scan", sequence=seq)
+        rr.log("/world/map", grid_map(grid))
+        rr.log("/world/trajectory", rr.LineStrips2D([np.asarray(poses[:, :2], np.float32)], colors=[TRAJ], radii=[0.02]))
+        self.on_constraints(seq, nodes, node_in_submap)
+        rr.log("/events", rr.TextLog("run finished: " + ", ".join(f"{k} {v}" for k, v in stats.items()),
+                                     level=rr.TextLogLevel.INFO))
+
+    def close(self) -> None:
+        """Flush everything and close the recording (the .rrd is complete after this)."""
+        self.flush()
+        rr.disconnect()
+
+
+def view(path: str) -> int:
+    """Open a recording in the Rerun viewer (the ``rerun`` binary the wheel ships)."""
+    import shutil
+    import subprocess
+    import sys
+
+    exe = shutil.which("rerun") or os.path.join(os.path.dirname(sys.executable), "rerun")
+    return subprocess.call([exe, path])
+
+
+__all__ = ["RerunObserver", "view"]
