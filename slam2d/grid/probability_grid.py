@@ -85,8 +85,9 @@ class ProbabilityGrid:
         known = np.ascontiguousarray(self.known[r0:r1, c0:c1])
         self.logodds = np.ascontiguousarray(self.logodds[r0:r1, c0:c1])
         self.prob = np.ascontiguousarray(self.prob[r0:r1, c0:c1])
-        if self.field_sigma:
-            self.field = np.ascontiguousarray(self.field[r0:r1, c0:c1])
+        # a frozen grid is read, never matched by local SLAM again: its likelihood field goes
+        self.field_sigma = None
+        self.field = np.zeros((0, 0), dtype=np.float32)
         self.origin = self.origin + np.array([c0, r0]) * self.resolution
         self._known = known
         self.stamp = np.zeros((0, 0), dtype=np.int32)
