@@ -12,9 +12,9 @@ from numba import njit
 
 
 @njit(cache=True, inline="always")
-def _apply(logodds, prob, stamp, r, c, scan_id, delta, lo_min, lo_max, flips, n_flips):
+def _apply(logodds, prob, stamp, r, c, scan_id, delta, lo_min, lo_max):
     if stamp[r, c] == scan_id:
-        return
+        return False
     stamp[r, c] = scan_id  # a cell is known once any scan updated it (stamp > 0)
     old = logodds[r, c]
     v = old + delta
@@ -23,15 +23,10 @@ def _apply(logodds, prob, stamp, r, c, scan_id, delta, lo_min, lo_max, flips, n_
     elif v > lo_max:
         v = lo_max
     if v == old:  # clamped: most misses land on cells already at the minimum
-        return
+        return False
     logodds[r, c] = v
     prob[r, c] = 1.0 / (1.0 + math.exp(-v))
-    if (old > 0.0) != (v > 0.0):  # the cell changed between occupied and not occupied
-        k = n_flips[0]
-        if k < flips.shape[0]:
-            flips[k, 0] = r
-            flips[k, 1] = c
-        n_flips[0] = k + 1
+    return (old > 0.0) != (v > 0.0)
 
 
 @njit(cache=True)
@@ -48,12 +43,18 @@ def insert_rays(logodds, prob, stamp, scan_id, ox, oy, ends, is_hit, hit_delta, 
     """
     rows, cols = logodds.shape
     m = ends.shape[0]
+    nf = 0
+    cap = flips.shape[0]
     for i in range(m):
         if is_hit[i]:
             c = int(math.floor(ends[i, 0]))
             r = int(math.floor(ends[i, 1]))
             if 0 <= r < rows and 0 <= c < cols:
-                _apply(logodds, prob, stamp, r, c, scan_id, hit_delta, lo_min, lo_max, flips, n_flips)
+                if _apply(logodds, prob, stamp, r, c, scan_id, hit_delta, lo_min, lo_max):
+                    if nf < cap:
+                        flips[nf, 0] = r
+                        flips[nf, 1] = c
+                    nf += 1
     for i in range(m):
         ex = ends[i, 0]
         ey = ends[i, 1]
@@ -82,16 +83,25 @@ def insert_rays(logodds, prob, stamp, scan_id, ox, oy, ends, is_hit, hit_delta, 
         for _ in range(n_steps + 1):
             if cx == tx and cy == ty:
                 if not is_hit[i] and 0 <= cy < rows and 0 <= cx < cols:
-                    _apply(logodds, prob, stamp, cy, cx, scan_id, miss_delta, lo_min, lo_max, flips, n_flips)
+                    if _apply(logodds, prob, stamp, cy, cx, scan_id, miss_delta, lo_min, lo_max):
+                        if nf < cap:
+                            flips[nf, 0] = cy
+                            flips[nf, 1] = cx
+                        nf += 1
                 break
             if 0 <= cy < rows and 0 <= cx < cols:
-                _apply(logodds, prob, stamp, cy, cx, scan_id, miss_delta, lo_min, lo_max, flips, n_flips)
+                if _apply(logodds, prob, stamp, cy, cx, scan_id, miss_delta, lo_min, lo_max):
+                    if nf < cap:
+                        flips[nf, 0] = cy
+                        flips[nf, 1] = cx
+                    nf += 1
             if t_max_x < t_max_y:
                 t_max_x += t_delta_x
                 cx += step_x
             else:
                 t_max_y += t_delta_y
                 cy += step_y
+    n_flips[0] = nf
 
 
 @njit(cache=True)
