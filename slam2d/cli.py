@@ -113,6 +113,7 @@ def cmd_run(args) -> int:
     from slam2d.output import OutputDir, config_text
     from slam2d.summary import run_summary
 
+    t0 = time.perf_counter()
     cfg = load_config(args.config)
     if args.max_scans is not None and args.max_scans <= 0:
         raise UsageError("--max-scans must be positive")
@@ -121,7 +122,6 @@ def cmd_run(args) -> int:
     if args.max_scans:
         total = min(total, args.max_scans) if total else args.max_scans
     out = OutputDir(args.out)
-    t0 = time.perf_counter()
     if args.odometry_only:
         tracker, mode = OdometryTracker(cfg), "odometry"
     else:

@@ -30,13 +30,61 @@ def open_text(path: str | Path):
         raise InputError(path, f"cannot open: {e.strerror or e}") from None
 
 
+def _threaded_lines(f, block=1 << 20):
+    """Lines of a text stream whose reading (decompression) runs in a background thread.
+
+    bz2/gzip decompression releases the GIL, so it overlaps with the parsing done by the
+    caller on the other core. Errors raised while reading are re-raised here, in order.
+    """
+    import queue
+    import threading
+
+    q: queue.Queue = queue.Queue(maxsize=8)
+    stop = threading.Event()
+
+    def reader():
+        try:
+            while not stop.is_set():
+                chunk = f.read(block)
+                q.put(chunk)
+                if not chunk:
+                    return
+        except BaseException as e:  # handed to the consumer
+            q.put(e)
+
+    t = threading.Thread(target=reader, daemon=True)
+    t.start()
+    rest = ""
+    try:
+        while True:
+            chunk = q.get()
+            if isinstance(chunk, BaseException):
+                raise chunk
+            if not chunk:
+                if rest:
+                    yield rest
+                return
+            lines = (rest + chunk).split("\n")
+            rest = lines.pop()
+            for line in lines:
+                yield line + "\n"
+    finally:
+        stop.set()
+        while t.is_alive():
+            try:
+                q.get_nowait()
+            except queue.Empty:
+                t.join(0.01)
+
+
 def iter_lines(path: str | Path):
     """Yield (line_number, text) with decompression/decoding errors turned into InputError."""
     n = 0
     f = open_text(path)
     try:
         with f:
-            for n, line in enumerate(f, start=1):
+            lines = _threaded_lines(f) if str(path).lower().endswith((".bz2", ".gz")) else f
+            for n, line in enumerate(lines, start=1):
                 yield n, line
     except DECOMPRESSION_ERRORS as e:
         what = "not valid UTF-8 text" if isinstance(e, UnicodeDecodeError) else f"corrupt or truncated file ({e})"

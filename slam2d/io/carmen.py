@@ -194,7 +194,9 @@ class CarmenLog:
                 f.num_odom += 1
                 continue
             p = _parse_laser(self.path, lineno, parts)
-            dump.dump((lineno, p))
+            dump.dump((lineno, p.kind, p.timestamp, p.timestamp_text, p.ranges.tobytes(), p.angle_min,
+                       p.angle_increment, tuple(p.laser_pose), tuple(p.robot_pose), p.max_range,
+                       None if p.intensities is None else p.intensities.tobytes()))
             dump.clear_memo()
             f.num_scans += 1
             r = p.ranges[np.isfinite(p.ranges)]
@@ -219,7 +221,9 @@ class CarmenLog:
         spool.seek(0)
         load = pickle.Unpickler(spool)
         for _ in range(self.facts().num_scans):
-            yield load.load()
+            ln, kind, t, text, r, a0, da, lp, rp, mr, inten = load.load()
+            yield ln, _Parsed(kind, t, text, np.frombuffer(r, dtype=np.float64), a0, da, np.array(lp), np.array(rp), mr,
+                              None if inten is None else np.frombuffer(inten, dtype=np.float32))
 
     def _records(self):
         for lineno, line in iter_lines(self.path):
