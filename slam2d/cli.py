@@ -128,6 +128,11 @@ def cmd_run(args) -> int:
         from slam2d.frontend import LocalSlam
 
         tracker, mode = LocalSlam(cfg), "local"
+    global_slam = None
+    if not args.odometry_only and not args.no_loop_closure and cfg.loop_closure.enabled:
+        from slam2d.backend.global_slam import GlobalSlam
+
+        global_slam, mode = GlobalSlam(cfg), "global"
     viz = None
     rrd_tmp = None
     if args.rerun or args.viewer:
@@ -139,14 +144,17 @@ def cmd_run(args) -> int:
         viz = RerunObserver(path=rrd_tmp, spawn=args.viewer)
     try:
         with _progress(total, args.no_progress, "slam2d") as bar:
-            mapper = Mapper(cfg, tracker, viz)
+            mapper = Mapper(cfg, tracker, viz, global_slam)
             result = mapper.run(_limited(src, args.max_scans), progress=bar, info={"input": args.input, "mode": mode})
         t_map = time.perf_counter()
-        grid = build_map(cfg, result.nodes)
+        node_poses = {n.scan_index: result.poses[n.scan_index] for n in result.nodes} if global_slam else None
+        grid = build_map(cfg, result.nodes, node_poses)
         wall_map = time.perf_counter() - t_map
         out.write_trajectory("trajectory.txt", result.stamps, result.poses)
         out.write_map(grid, cfg)
         out.write_text("config.yaml", config_text(cfg))
+        if global_slam is not None:
+            out.write_text("constraints.jsonl", "".join(json.dumps(r) + "\n" for r in global_slam.records))
         if args.mcap:
             from slam2d.grid.map_export import occupancy_image
             from slam2d.io.results_mcap import write_results_mcap
@@ -155,11 +163,14 @@ def cmd_run(args) -> int:
             write_results_mcap(out.staged("results.mcap"), _limited(_source(args), args.max_scans), result.poses,
                                img, grid.resolution, (ox, oy))
         if viz is not None:
-            viz.log_final(len(result.stamps) - 1, grid, result.poses, *_graph(tracker, result),
+            viz.log_final(len(result.stamps) - 1, grid, result.poses, *_graph(tracker, result, global_slam),
                           {"scans": len(result.stamps), "nodes": len(result.nodes)})
             viz.close()
         wall = time.perf_counter() - t0
-        out.write_json("summary.json", run_summary(args.input, mode, result, wall, wall_map, tracker))
+        summary = run_summary(args.input, mode, result, wall, wall_map, tracker)
+        if global_slam is not None:
+            summary.update(global_slam.summary())
+        out.write_json("summary.json", summary)
         out.commit()
         if rrd_tmp:
             import os
@@ -175,18 +186,24 @@ def cmd_run(args) -> int:
     return 0
 
 
-def _graph(tracker, result):
-    """Node positions and node-in-submap segments for visualization."""
+def _graph(tracker, result, global_slam=None):
+    """Node positions, node-in-submap segments, accepted and rejected loop constraints (final poses)."""
     import numpy as np
 
-    nodes = np.array([n.local_pose[:2] for n in result.nodes]).reshape(-1, 2)
-    segs = []
-    pose_of = {n.scan_index: n.local_pose for n in result.nodes}
+    pose_of = {n.scan_index: result.poses[n.scan_index] for n in result.nodes}
+    nodes = np.array([p[:2] for p in pose_of.values()]).reshape(-1, 2)
+    segs, loops, rejected = [], [], []
     for sub in getattr(tracker, "all_submaps", lambda: [])():
+        anchor = sub.node_indices[0] if sub.node_indices else None
         for i in sub.node_indices:
-            if i in pose_of:
-                segs.append((pose_of[i][:2], sub.local_pose[:2]))
-    return nodes, np.array(segs).reshape(-1, 2, 2)
+            if i in pose_of and anchor in pose_of:
+                segs.append((pose_of[i][:2], pose_of[anchor][:2]))
+    for r in (global_slam.records if global_slam else []):
+        a, b = pose_of.get(r["from_scan"]), pose_of.get(r["to_scan"])
+        if a is not None and b is not None:
+            (loops if r.get("in_final_graph") else rejected).append((a[:2], b[:2]))
+    return (nodes, np.array(segs).reshape(-1, 2, 2), np.array(loops).reshape(-1, 2, 2),
+            np.array(rejected).reshape(-1, 2, 2))
 
 
 def cmd_view(args) -> int:

@@ -78,6 +78,33 @@ class RefineConfig(_Section):
     max_iterations: int = Field(20, ge=1, description="Gauss-Newton iterations at most.")
 
 
+class LoopClosureConfig(_Section):
+    """Global SLAM: branch-and-bound loop closure (Hess et al. 2016, Sec. V) and the GTSAM pose graph."""
+
+    enabled: bool = Field(True, description="Search loop closures and optimize the pose graph (off = local SLAM only, like --no-loop-closure).")
+    min_score: float = Field(0.55, gt=0.0, lt=1.0, description="Smallest mean probability under the scan's points that makes a match a constraint (Cartographer: 0.55).")
+    linear_search_window: float = Field(3.0, gt=0.0, description="Half-width of the x/y window around the estimated pose [m].")
+    angular_search_window_deg: float = Field(15.0, gt=0.0, le=180.0, description="Half-width of the rotation window [deg].")
+    branch_depth: int = Field(6, ge=1, le=8, description="Precomputation grids of widths 1 … 2^depth cells.")
+    voxel_filter_size: float = Field(0.05, ge=0.0, description="Scan points are thinned to one per cell of this size for loop-closure matching [m].")
+    sample_every_n_nodes: int = Field(10, ge=1, description="Every n-th node is matched against nearby finished submaps.")
+    max_submaps_per_node: int = Field(2, ge=1, description="A sampled node is matched against at most this many nearest finished submaps.")
+    max_searches_per_submap: int = Field(8, ge=0, description="A newly finished submap is matched against at most this many earlier nearby nodes.")
+    exclude_recent_submaps: int = Field(2, ge=0, description="The newest finished submaps are left to local SLAM.")
+    max_constraint_distance: float = Field(10.0, gt=0.0, description="Only submaps whose centre lies this close to the node's estimate are searched [m].")
+    loop_sigma_translation: float = Field(0.02, gt=0.0, description="Standard deviation of a loop constraint's translation [m].")
+    loop_sigma_rotation_deg: float = Field(0.3, gt=0.0, description="Standard deviation of a loop constraint's rotation [deg].")
+    min_local_sigma_translation: float = Field(0.01, gt=0.0, description="Floor on the translation sigma of node-in-submap constraints from the local matcher's covariance [m].")
+    min_local_sigma_rotation_deg: float = Field(0.1, gt=0.0, description="Floor on their rotation sigma [deg].")
+    huber_scale: float = Field(1.0, gt=0.0, description="Huber threshold (in standard deviations) of the robust loop-constraint noise.")
+    max_residual_translation: float = Field(0.3, gt=0.0, description="A loop constraint whose residual after optimization exceeds this [m] is removed.")
+    max_residual_rotation_deg: float = Field(3.0, gt=0.0, description="... or this [deg].")
+    optimize_every_n_nodes: int = Field(90, ge=1, description="Optimize the pose graph after this many new nodes (and once at the end).")
+    refine_occupied_weight: float = Field(20.0, gt=0.0, description="Refinement of loop matches: grid weight (Cartographer: 20).")
+    refine_translation_weight: float = Field(10.0, ge=0.0, description="Refinement of loop matches: translation weight (Cartographer: 10).")
+    refine_rotation_weight: float = Field(1.0, ge=0.0, description="Refinement of loop matches: rotation weight (Cartographer: 1).")
+
+
 class MapConfig(_Section):
     """The exported occupancy map (ROS map_server PGM + YAML, and PNG)."""
 
@@ -99,6 +126,7 @@ class SlamConfig(_Section):
     motion_filter: MotionFilterConfig = Field(default_factory=MotionFilterConfig, description="Insertion gate.")
     real_time_matcher: RealTimeMatcherConfig = Field(default_factory=RealTimeMatcherConfig, description="Local scan matching.")
     refine: RefineConfig = Field(default_factory=RefineConfig, description="Sub-cell refinement.")
+    loop_closure: LoopClosureConfig = Field(default_factory=LoopClosureConfig, description="Global SLAM.")
     map: MapConfig = Field(default_factory=MapConfig, description="Exported map.")
 
     @field_validator("grid")

@@ -84,6 +84,7 @@ class LocalSlam:
         predicted = self.extrapolator.predict(scan.timestamp, scan.odom_pose)
         pose = predicted
         score = None
+        cov = None
         submap = self.submaps.matching_submap
         if submap is not None and len(points) >= 3:
             grid = submap.match_grid()
@@ -97,6 +98,7 @@ class LocalSlam:
             timings["match"] = (t2 - t1) * 1e3
             if m is not None:
                 pose, score = m.pose, m.score
+                match = m
                 if self.cfg.refine.enabled:
                     r = self.cfg.refine
                     pose, _ = refine(submap.probability_grid(), pose, points, r.occupied_space_weight, r.translation_weight, r.rotation_weight,
@@ -109,16 +111,21 @@ class LocalSlam:
         self.extrapolator.add(scan.timestamp, pose, scan.odom_pose)
         inserted = not self.filter.is_similar(scan.timestamp, pose)
         finished = []
+        inserted_into = []
         if inserted:
             t3 = time.perf_counter()
             local = rd.transformed(pose)
             finished = self.submaps.insert(pose, local.origin, local.hits, local.misses, scan.index)
+            inserted_into = self.submaps.last_inserted_into
+            if score is not None:
+                cov = match.covariance
             self.finished_submaps.extend(finished)
             self.num_inserted += 1
             timings["insert"] = (time.perf_counter() - t3) * 1e3
         timings["total"] = (time.perf_counter() - t0) * 1e3
         return MatchingResult(scan.timestamp, pose, rd, inserted, score, timings,
-                              active_submap=self.submaps.matching_submap, finished_submaps=finished)
+                              active_submap=self.submaps.matching_submap, finished_submaps=finished,
+                              inserted_into=inserted_into, covariance=cov)
 
     def all_submaps(self):
         return list(self.finished_submaps) + list(self.submaps.submaps)

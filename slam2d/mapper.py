@@ -32,6 +32,8 @@ class MatchingResult:
     timings: dict = field(default_factory=dict)
     active_submap: object = None          # the submap this scan was matched against (local SLAM)
     finished_submaps: list = field(default_factory=list)  # submaps this insertion finished
+    inserted_into: list = field(default_factory=list)     # (submap index, submap local pose) it went into
+    covariance: np.ndarray | None = None  # of the local match (Olson 2009, Sec. IV)
 
 
 class OdometryTracker:
@@ -76,10 +78,11 @@ class RunResult:
 
 
 class Mapper:
-    def __init__(self, cfg: SlamConfig, tracker, observer: Observer | None = None):
+    def __init__(self, cfg: SlamConfig, tracker, observer: Observer | None = None, global_slam=None):
         self.cfg = cfg
         self.tracker = tracker
         self.observer = observer or Observer()
+        self.global_slam = global_slam
 
     def run(self, source, progress=None, info: dict | None = None) -> RunResult:
         stamps, times, poses, nodes = [], [], [], []
@@ -109,6 +112,13 @@ class Mapper:
             stamps.append(scan.timestamp_text or f"{scan.timestamp:.9f}")
             times.append(scan.timestamp)
             poses.append(res.local_pose)
+            if self.global_slam is not None:
+                t1 = time.perf_counter()
+                if res.inserted:
+                    self.global_slam.add_node(scan, res.local_pose, res.range_data.hits, res.covariance, res.inserted_into)
+                for sub in res.finished_submaps:
+                    self.global_slam.add_finished_submap(sub)
+                stage_ms.setdefault("global", []).append((time.perf_counter() - t1) * 1e3)
             if res.inserted:
                 rd = res.range_data
                 nodes.append(Node(scan.index, scan.timestamp, np.asarray(res.local_pose, dtype=float),
@@ -119,10 +129,31 @@ class Mapper:
         if not stamps:
             raise InputError(getattr(source, "path", "input"), "no scans")
         counts["nodes"] = len(nodes)
+        poses = np.array(poses, dtype=float).reshape(-1, 3)
+        if self.global_slam is not None:
+            t1 = time.perf_counter()
+            node_global = self.global_slam.finish()
+            poses = globalize(poses, node_global)
+            stage_ms["final_optimization"] = [(time.perf_counter() - t1) * 1e3]
+            self.observer.on_optimized(self)
         timings = {k: _percentiles(v) for k, v in stage_ms.items()}
-        result = RunResult(stamps, np.array(times), np.array(poses, dtype=float).reshape(-1, 3), nodes, counts, timings)
+        result = RunResult(stamps, np.array(times), poses, nodes, counts, timings)
         self.observer.on_finish(self)
         return result
+
+
+def globalize(local_poses: np.ndarray, node_global: dict[int, np.ndarray]) -> np.ndarray:
+    """Every scan's global pose: its latest node's global pose composed with the local motion since that node."""
+    from slam2d.geometry import between, compose
+
+    out = local_poses.copy()
+    anchor = None
+    for i in range(len(local_poses)):
+        if i in node_global:
+            anchor = i
+        if anchor is not None:
+            out[i] = compose(node_global[anchor], between(local_poses[anchor], local_poses[i]))
+    return out
 
 
 def _percentiles(v: list[float]) -> dict:

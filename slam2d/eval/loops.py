@@ -49,12 +49,15 @@ def read_constraints(path) -> list[dict]:
             try:
                 c = json.loads(line)
                 c["from_scan"], c["to_scan"] = int(c["from_scan"]), int(c["to_scan"])
-                c["relative_pose"] = [float(v) for v in c["relative_pose"]]
-                c["score"] = float(c.get("score", math.nan))
+                rel = c.get("relative_pose")
+                c["relative_pose"] = None if rel is None else [float(v) for v in rel]
+                c["score"] = math.nan if c.get("score") is None else float(c["score"])
                 c["accepted"] = bool(c["accepted"])
             except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
                 raise InputError(path, f"not a constraint record ({type(e).__name__}: {e})", line=n) from None
-            if len(c["relative_pose"]) != 3:
+            if c["relative_pose"] is None and c["accepted"]:
+                raise InputError(path, "an accepted constraint needs a relative_pose", line=n)
+            if c["relative_pose"] is not None and len(c["relative_pose"]) != 3:
                 raise InputError(path, "relative_pose needs 3 values", line=n)
             out.append(c)
     return out
@@ -63,6 +66,8 @@ def read_constraints(path) -> list[dict]:
 def agrees(poses: np.ndarray, c: dict, trans: float, rot_deg: float):
     """True/False, or None when a pose is unknown."""
     i, j = c["from_scan"], c["to_scan"]
+    if c["relative_pose"] is None:
+        return None
     if i >= len(poses) or j >= len(poses) or np.isnan(poses[i, 0]) or np.isnan(poses[j, 0]):
         return None
     e = between(between(poses[i], poses[j]), np.asarray(c["relative_pose"]))

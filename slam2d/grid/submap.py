@@ -59,6 +59,7 @@ class ActiveSubmaps:
         if not self.submaps or self.submaps[-1].num_range_data == self.num_range_data:
             self._add(local_pose)
         finished = []
+        self.last_inserted_into = [(s.index, s.local_pose) for s in self.submaps]
         for s in self.submaps:
             s.grid.insert(origin, hits, misses)
             s.num_range_data += 1

@@ -69,7 +69,7 @@ class PrecomputationStack:
         self.levels = [grid.values]
         for d in range(1, depth + 1):
             w = 1 << d
-            self.levels.append(sliding_max(grid.values, w, grid.unknown))
+            self.levels.append(sliding_max(grid.values, w, grid.unknown).astype(grid.values.dtype))
 
     @property
     def nbytes(self) -> int:

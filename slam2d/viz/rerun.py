@@ -177,11 +177,11 @@ class RerunObserver(Observer):
     def on_finish(self, mapper) -> None:
         self.flush()
 
-    def log_final(self, seq, grid, poses, nodes, node_in_submap, stats: dict) -> None:
+    def log_final(self, seq, grid, poses, nodes, node_in_submap, loops, rejected, stats: dict) -> None:
         rr.set_time("scan", sequence=seq)
         rr.log("/world/map", grid_map(grid))
         rr.log("/world/trajectory", rr.LineStrips2D([np.asarray(poses[:, :2], np.float32)], colors=[TRAJ], radii=[0.02]))
-        self.on_constraints(seq, nodes, node_in_submap)
+        self.on_constraints(seq, nodes, node_in_submap, loops, rejected)
         rr.log("/events", rr.TextLog("run finished: " + ", ".join(f"{k} {v}" for k, v in stats.items()),
                                      level=rr.TextLogLevel.INFO))
 

@@ -1,0 +1,170 @@
+"""Global SLAM (Cartographer's ``PoseGraph2D``; Hess et al. 2016, Sec. V).
+
+Every node (an inserted scan) enters the pose graph tied to the submaps it was inserted
+into; sampled nodes are matched against nearby finished submaps (branch-and-bound), and
+each newly finished submap against earlier nearby nodes; accepted matches become
+loop-closure constraints. The graph is optimized every ``optimize_every_n_nodes`` nodes and
+once at the end; submaps and nodes then move to their global poses.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import time
+
+import numpy as np
+
+from slam2d.backend.loop_closure import SubmapMatcher, loop_points
+from slam2d.backend.pose_graph import PoseGraph
+from slam2d.geometry import between, compose, inverse
+
+log = logging.getLogger(__name__)
+
+
+class GlobalSlam:
+    def __init__(self, cfg):
+        self.cfg = cfg
+        lc = cfg.loop_closure
+        self.lc = lc
+        self.graph = PoseGraph(lc.huber_scale, lc.max_residual_translation, math.radians(lc.max_residual_rotation_deg))
+        self.matchers: dict[int, SubmapMatcher] = {}
+        self.submap_anchor: dict[int, int] = {}  # submap -> scan index of its first node
+        self.submap_local: dict[int, np.ndarray] = {}
+        self.nodes: dict[int, dict] = {}  # scan index -> {local, time, stamp, points}
+        self.node_order: list[int] = []
+        self.records: list[dict] = []
+        self.correction = np.zeros(3)  # global <- local, from the latest optimization
+        self.since_optimize = 0
+        self.search_seconds = 0.0
+        self.searches = 0
+        self.optimize_seconds = 0.0
+        self.optimizations = 0
+
+    # ---- estimates
+    def global_node(self, j) -> np.ndarray:
+        if self.graph.has_node(j) and self.optimizations:
+            return self.graph.node_pose(j)
+        return compose(self.correction, self.nodes[j]["local"])
+
+    def global_submap(self, k) -> np.ndarray:
+        if self.optimizations:
+            return self.graph.submap_pose(k)
+        return compose(self.correction, self.submap_local[k])
+
+    # ---- input from local SLAM
+    def add_node(self, scan, local_pose, hits, covariance, inserted_into):
+        j = scan.index
+        self.nodes[j] = {"local": np.asarray(local_pose, float), "time": scan.timestamp,
+                         "stamp": scan.timestamp_text or f"{scan.timestamp:.9f}",
+                         "points": loop_points(hits, self.lc.voxel_filter_size)}
+        self.node_order.append(j)
+        self.graph.add_node(j, compose(self.correction, local_pose))
+        cov = _floored(covariance, self.lc.min_local_sigma_translation, math.radians(self.lc.min_local_sigma_rotation_deg))
+        for k, sub_local in inserted_into:
+            if k not in self.submap_local:
+                self.submap_local[k] = np.asarray(sub_local, float)
+                self.submap_anchor[k] = j
+                self.graph.add_submap(k, compose(self.correction, sub_local))
+            self.graph.add_intra(k, j, between(self.submap_local[k], local_pose), cov)
+        if self.lc.enabled and len(self.node_order) % self.lc.sample_every_n_nodes == 0:
+            self._search_node(j)
+        self.since_optimize += 1
+        if self.since_optimize >= self.lc.optimize_every_n_nodes:
+            self.optimize()
+
+    def add_finished_submap(self, submap):
+        if not self.lc.enabled:
+            return
+        self.matchers[submap.index] = SubmapMatcher(submap, self.lc.branch_depth)
+        # earlier nodes near the new submap (sampled), excluding those inside it
+        inside = set(submap.node_indices)
+        center = compose(self.global_submap(submap.index), between(submap.local_pose, np.r_[self.matchers[submap.index].center_local, 0.0]))
+        cands = []
+        for j in self.node_order[:: self.lc.sample_every_n_nodes]:
+            if j in inside or j >= min(inside, default=0):
+                continue
+            d = np.hypot(*(self.global_node(j)[:2] - center[:2]))
+            if d < self.lc.max_constraint_distance:
+                cands.append((d, j))
+        for _, j in sorted(cands)[: self.lc.max_searches_per_submap]:
+            self._search(submap.index, j)
+
+    # ---- searching
+    def _search_node(self, j):
+        node_g = self.global_node(j)
+        newest = max(self.matchers, default=-1)
+        cands = []
+        for k, m in self.matchers.items():
+            if k > newest - self.lc.exclude_recent_submaps:
+                continue
+            center = compose(self.global_submap(k), between(m.submap.local_pose, np.r_[m.center_local, 0.0]))
+            d = np.hypot(*(node_g[:2] - center[:2]))
+            if d < self.lc.max_constraint_distance:
+                cands.append((d, k))
+        for _, k in sorted(cands)[: self.lc.max_submaps_per_node]:
+            self._search(k, j)
+
+    def _search(self, k, j):
+        m = self.matchers[k]
+        node = self.nodes[j]
+        # the node's pose in the submap's grid frame, from the current global estimates
+        rel = between(self.global_submap(k), self.global_node(j))
+        initial = compose(m.submap.local_pose, rel)
+        lc = self.lc
+        t0 = time.perf_counter()
+        res = m.match(node["points"], initial, lc.linear_search_window, math.radians(lc.angular_search_window_deg),
+                      lc.min_score, (lc.refine_occupied_weight, lc.refine_translation_weight, lc.refine_rotation_weight, 20))
+        dt = time.perf_counter() - t0
+        self.search_seconds += dt
+        self.searches += 1
+        rec = {"submap": int(k), "from_scan": int(self.submap_anchor[k]), "to_scan": int(j),
+               "from_stamp": self.nodes[self.submap_anchor[k]]["stamp"], "to_stamp": node["stamp"],
+               "search_ms": round(dt * 1e3, 3)}
+        if res is None:
+            rec.update({"relative_pose": None, "score": None, "accepted": False, "reason": f"no match above {lc.min_score}"})
+        else:
+            rec.update({"relative_pose": [float(v) for v in res.relative], "score": round(res.score, 4), "accepted": True,
+                        "reason": "accepted", "in_final_graph": True})
+            sig = [lc.loop_sigma_translation, lc.loop_sigma_translation, math.radians(lc.loop_sigma_rotation_deg)]
+            self.graph.add_loop(k, j, res.relative, sig, rec)
+        self.records.append(rec)
+
+    # ---- optimization
+    def optimize(self):
+        if not self.node_order:
+            return
+        t0 = time.perf_counter()
+        dropped = self.graph.optimize()
+        self.optimize_seconds += time.perf_counter() - t0
+        self.optimizations += 1
+        self.since_optimize = 0
+        last = self.node_order[-1]
+        self.correction = compose(self.graph.node_pose(last), inverse(self.nodes[last]["local"]))
+        if dropped:
+            log.info("dropped %d loop constraints with large residuals", len(dropped))
+
+    def finish(self) -> dict[int, np.ndarray]:
+        self.optimize()
+        return {j: self.graph.node_pose(j) for j in self.node_order}
+
+    def summary(self) -> dict:
+        acc = sum(1 for r in self.records if r["accepted"])
+        final = sum(1 for r in self.records if r.get("in_final_graph"))
+        return {"loop_closure": {
+            "candidates_searched": self.searches, "accepted": acc, "rejected_score": self.searches - acc,
+            "removed_after_optimization": len(self.graph.removed), "in_final_graph": final,
+            "search_total_s": round(self.search_seconds, 3),
+            "search_mean_ms": round(1e3 * self.search_seconds / self.searches, 3) if self.searches else None,
+            "optimizations": self.optimizations, "optimize_total_s": round(self.optimize_seconds, 3),
+            "final_error": self.graph.last_error[1], "submaps": len(self.submap_local), "nodes": len(self.node_order),
+        }}
+
+
+def _floored(cov, sigma_t, sigma_r) -> np.ndarray:
+    c = np.diag([sigma_t ** 2, sigma_t ** 2, sigma_r ** 2]) if cov is None else np.array(cov, dtype=float)
+    c = 0.5 * (c + c.T)
+    floor = np.array([sigma_t ** 2, sigma_t ** 2, sigma_r ** 2])
+    d = np.diag(c)
+    c[np.diag_indices(3)] = np.maximum(d, floor)
+    w, v = np.linalg.eigh(c)
+    return (v * np.maximum(w, floor.min())) @ v.T

@@ -1,0 +1,123 @@
+"""The pose graph (Hess et al. 2016, Sec. V; Cartographer's sparse pose adjustment), solved with GTSAM.
+
+Variables are submap poses (``s``) and node poses (``n``) in the map frame. Factors:
+a prior on the first submap; node-in-submap constraints from local SLAM (their noise from
+the real-time matcher's covariance); loop-closure constraints under a Huber robust noise
+model. ``optimize`` runs batch Levenberg-Marquardt from the current estimate; loop
+constraints whose residual stays large afterwards are removed and the graph solved
+again. This is the only module that imports gtsam.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+
+def _key(kind: str, i: int) -> int:
+    return gtsam.symbol(kind, i)
+
+
+def _pose(p) -> gtsam.Pose2:
+    return gtsam.Pose2(float(p[0]), float(p[1]), float(p[2]))
+
+
+def _arr(p: gtsam.Pose2) -> np.ndarray:
+    return np.array([p.x(), p.y(), p.theta()])
+
+
+@dataclass
+class LoopFactor:
+    index: int          # position in the factor graph
+    submap: int
+    node: int
+    relative: np.ndarray
+    record: dict        # the constraints.jsonl record, updated with the outcome
+
+
+class PoseGraph:
+    def __init__(self, huber_scale: float = 1.0, max_residual_trans: float = 0.3, max_residual_rot: float = 0.05):
+        self.graph = gtsam.NonlinearFactorGraph()
+        self.values = gtsam.Values()
+        self.huber_scale = huber_scale
+        self.max_residual_trans = max_residual_trans
+        self.max_residual_rot = max_residual_rot
+        self.loops: list[LoopFactor] = []
+        self.removed: list[LoopFactor] = []
+        self.has_prior = False
+        self.iterations = 0
+        self.last_error = (math.nan, math.nan)
+
+    # ---- variables
+    def add_submap(self, k: int, pose):
+        if not self.values.exists(_key("s", k)):
+            self.values.insert(_key("s", k), _pose(pose))
+            if not self.has_prior:
+                self.graph.add(gtsam.PriorFactorPose2(_key("s", k), _pose(pose),
+                                                      gtsam.noiseModel.Diagonal.Sigmas(np.array([1e-3, 1e-3, 1e-4]))))
+                self.has_prior = True
+
+    def add_node(self, j: int, pose):
+        if not self.values.exists(_key("n", j)):
+            self.values.insert(_key("n", j), _pose(pose))
+
+    def submap_pose(self, k) -> np.ndarray:
+        return _arr(self.values.atPose2(_key("s", k)))
+
+    def node_pose(self, j) -> np.ndarray:
+        return _arr(self.values.atPose2(_key("n", j)))
+
+    def has_node(self, j) -> bool:
+        return self.values.exists(_key("n", j))
+
+    # ---- factors
+    def add_intra(self, k: int, j: int, relative, covariance: np.ndarray):
+        noise = gtsam.noiseModel.Gaussian.Covariance(np.asarray(covariance, dtype=float))
+        self.graph.add(gtsam.BetweenFactorPose2(_key("s", k), _key("n", j), _pose(relative), noise))
+
+    def add_loop(self, k: int, j: int, relative, sigmas, record: dict) -> LoopFactor:
+        base = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sigmas, dtype=float))
+        noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(self.huber_scale), base)
+        self.graph.add(gtsam.BetweenFactorPose2(_key("s", k), _key("n", j), _pose(relative), noise))
+        f = LoopFactor(self.graph.size() - 1, k, j, np.asarray(relative, dtype=float), record)
+        self.loops.append(f)
+        return f
+
+    def residual(self, f: LoopFactor) -> np.ndarray:
+        s = self.values.atPose2(_key("s", f.submap))
+        n = self.values.atPose2(_key("n", f.node))
+        return _arr(s.between(n).between(_pose(f.relative)))
+
+    # ---- solve
+    def _solve(self):
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(50)
+        opt = gtsam.LevenbergMarquardtOptimizer(self.graph, self.values, params)
+        before = self.graph.error(self.values)
+        self.values = opt.optimize()
+        self.iterations += opt.iterations()
+        self.last_error = (before, self.graph.error(self.values))
+
+    def optimize(self) -> list[LoopFactor]:
+        """Solve; drop loop constraints whose residual stays large; returns the dropped ones."""
+        self._solve()
+        dropped = []
+        for _ in range(3):
+            bad = []
+            for f in self.loops:
+                r = self.residual(f)
+                if math.hypot(r[0], r[1]) > self.max_residual_trans or abs(r[2]) > self.max_residual_rot:
+                    bad.append(f)
+            if not bad:
+                break
+            for f in bad:
+                self.graph.remove(f.index)
+                self.loops.remove(f)
+                f.record["in_final_graph"] = False
+                f.record["reason"] = "residual after optimization"
+                self.removed.append(f)
+            dropped.extend(bad)
+            self._solve()
+        return dropped
