@@ -38,7 +38,9 @@ def test_run_on_bundled_dataset_writes_the_output_contract(tmp_path):
     assert len(t) == 1480
     assert stamps[0] == "1700000000.000000000" and np.all(np.diff(t) > 0)
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["scans"] == 1480 and summary["mode"] == "local"
+    assert summary["scans"] == 1480 and summary["mode"] == "global"
+    assert summary["loop_closure"]["in_final_graph"] > 0
+    assert (out / "constraints.jsonl").exists()
     assert summary["real_time_factor"] > 0 and summary["duration_s"] == pytest.approx(295.8)
     assert summary["timings"]["match"]["p99_ms"] > 0
     y = (out / "map.yaml").read_text()
