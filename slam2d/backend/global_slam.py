@@ -39,6 +39,7 @@ class GlobalSlam:
         self.searches = 0
         self.optimize_seconds = 0.0
         self.optimizations = 0
+        self.loops_at_last_optimize = 0
 
     # ---- estimates
     def global_node(self, j) -> np.ndarray:
@@ -70,7 +71,10 @@ class GlobalSlam:
             self._search_node(j)
         self.since_optimize += 1
         if self.since_optimize >= self.lc.optimize_every_n_nodes:
-            self.optimize()
+            if len(self.graph.loops) > self.loops_at_last_optimize:
+                self.optimize()
+            else:  # nothing new but local chains: the solution would only follow them
+                self.since_optimize = 0
 
     def add_finished_submap(self, submap):
         if not self.lc.enabled:
@@ -137,6 +141,7 @@ class GlobalSlam:
         dropped = self.graph.optimize()
         self.optimize_seconds += time.perf_counter() - t0
         self.optimizations += 1
+        self.loops_at_last_optimize = len(self.graph.loops)
         self.since_optimize = 0
         last = self.node_order[-1]
         self.correction = compose(self.graph.node_pose(last), inverse(self.nodes[last]["local"]))

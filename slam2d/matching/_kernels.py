@@ -226,3 +226,120 @@ def refine_pose(values, ox, oy, res, unknown, points, x0, y0, t0, w_occ, w_t, w_
         if not improved or step < 1e-6:
             break
     return x, y, t, cost, it + 1
+
+
+@njit(cache=True, inline="always")
+def _level_score(level, cells, a, dx, dy, unknown):
+    rows, cols = level.shape
+    n = cells.shape[1]
+    s = 0.0
+    for i in range(n):
+        c = cells[a, i, 0] + dx
+        r = cells[a, i, 1] + dy
+        if r < 0 or r >= rows or c < 0 or c >= cols:
+            s += unknown
+        else:
+            s += level[r, c]
+    return s / n
+
+
+@njit(cache=True, inline="always")
+def _penalty(w_t, w_r, res, angle, x, y, width):
+    if w_t == 0.0 and w_r == 0.0:
+        return 1.0
+    hx = x + width - 1
+    hy = y + width - 1
+    nx = x if x > 0 else (hx if hx < 0 else 0)
+    ny = y if y > 0 else (hy if hy < 0 else 0)
+    d = math.sqrt(float(nx * nx + ny * ny)) * res
+    v = w_t * d + w_r * abs(angle)
+    return math.exp(-v * v)
+
+
+@njit(cache=True)
+def branch_and_bound(levels, cells, angles, w, min_score, unknown, w_t, w_r, res):
+    """Depth-first branch-and-bound (Hess et al. 2016, Algorithm 3) with an explicit stack.
+
+    ``levels[d]`` is the max-pooled grid of width 2^d; candidates are (angle, dx, dy) with
+    dx, dy in [-w, w]; children are visited best first and a subtree whose bound is not
+    above the best score so far is cut. Returns (angle index, dx, dy, score) or score < 0.
+    """
+    depth = levels.shape[0] - 1
+    top = 1 << depth
+    n_off = (2 * w) // top + 1
+    a_n = cells.shape[0]
+    k0 = a_n * n_off * n_off
+    cand = np.empty((k0, 3), dtype=np.int64)
+    sc = np.empty(k0)
+    k = 0
+    for a in range(a_n):
+        for ix in range(n_off):
+            for iy in range(n_off):
+                x = -w + ix * top
+                y = -w + iy * top
+                cand[k, 0] = a
+                cand[k, 1] = x
+                cand[k, 2] = y
+                sc[k] = _level_score(levels[depth], cells, a, x, y, unknown) * _penalty(w_t, w_r, res, angles[a], x, y, top)
+                k += 1
+    order = np.argsort(sc)  # ascending: pushed so that the best is popped first
+    cap = k0 + 4 * (depth + 1) * 4 + 16
+    st_a = np.empty(cap, dtype=np.int64)
+    st_x = np.empty(cap, dtype=np.int64)
+    st_y = np.empty(cap, dtype=np.int64)
+    st_d = np.empty(cap, dtype=np.int64)
+    st_s = np.empty(cap)
+    sp = 0
+    for j in range(k0):
+        i = order[j]
+        st_a[sp] = cand[i, 0]
+        st_x[sp] = cand[i, 1]
+        st_y[sp] = cand[i, 2]
+        st_d[sp] = depth
+        st_s[sp] = sc[i]
+        sp += 1
+    best = min_score
+    ba, bx, by = -1, 0, 0
+    ks = np.empty(4)
+    kx = np.empty(4, dtype=np.int64)
+    ky = np.empty(4, dtype=np.int64)
+    while sp > 0:
+        sp -= 1
+        s = st_s[sp]
+        if s <= best:
+            continue
+        d = st_d[sp]
+        a = st_a[sp]
+        x = st_x[sp]
+        y = st_y[sp]
+        if d == 0:
+            best = s
+            ba, bx, by = a, x, y
+            continue
+        half = 1 << (d - 1)
+        m = 0
+        for i in range(2):
+            for j in range(2):
+                cx = x + i * half
+                cy = y + j * half
+                if cx <= w and cy <= w:
+                    kx[m] = cx
+                    ky[m] = cy
+                    ks[m] = _level_score(levels[d - 1], cells, a, cx, cy, unknown) * _penalty(
+                        w_t, w_r, res, angles[a], cx, cy, half)
+                    m += 1
+        # push ascending so the best child is popped first
+        for _ in range(m):
+            lo = 0
+            for q in range(1, m):
+                if ks[q] < ks[lo]:
+                    lo = q
+            if ks[lo] > best:
+                st_a[sp] = a
+                st_x[sp] = kx[lo]
+                st_y[sp] = ky[lo]
+                st_d[sp] = d - 1
+                st_s[sp] = ks[lo]
+                sp += 1
+            ks[lo] = np.inf
+    return ba, bx, by, best

@@ -61,19 +61,24 @@ class MatchGrid:
 
 
 class PrecomputationStack:
-    """Max-pooled grids of widths 1, 2, 4, …, 2^depth (Hess et al. 2016, Sec. V-C), as float32."""
+    """Max-pooled grids of widths 1, 2, 4, …, 2^depth (Hess et al. 2016, Sec. V-C), one 3-D array
+    in the grid's dtype (uint8 for finished submaps)."""
 
     def __init__(self, grid: MatchGrid, depth: int):
         self.grid = grid
         self.depth = depth
-        self.levels = [grid.values]
+        self.array = np.empty((depth + 1,) + grid.values.shape, dtype=grid.values.dtype)
+        self.array[0] = grid.values
         for d in range(1, depth + 1):
-            w = 1 << d
-            self.levels.append(sliding_max(grid.values, w, grid.unknown).astype(grid.values.dtype))
+            self.array[d] = sliding_max(grid.values, 1 << d, grid.unknown)
+
+    @property
+    def levels(self):
+        return list(self.array)
 
     @property
     def nbytes(self) -> int:
-        return sum(a.nbytes for a in self.levels)
+        return self.array.nbytes
 
 
 def sliding_max(values: np.ndarray, width: int, fill: float) -> np.ndarray:
@@ -123,36 +128,14 @@ def branch_and_bound(stack: PrecomputationStack, cells: np.ndarray, linear_cells
     """Best (angle index, dx, dy, score) with score > min_score, or None. Exact over the lattice.
 
     With a penalty, a block's bound is its max-pooled score times the largest penalty
-    factor in the block, which still bounds every descendant.
+    factor in the block, which still bounds every descendant. The search runs in a numba
+    kernel (explicit stack, children best first).
     """
-    depth = stack.depth
-    w = linear_cells
-    top = 1 << depth
-    unknown = np.float32(stack.grid.unknown)
-    offs = np.arange(-w, w + 1, top, dtype=np.int32)
-    a_idx, dx, dy = np.meshgrid(np.arange(cells.shape[0], dtype=np.int32), offs, offs, indexing="ij")
-    cands = np.stack([a_idx.ravel(), dx.ravel(), dy.ravel()], axis=1)
-    best = [min_score, None]
-
-    def recurse(cands, d):
-        scores = _kernels.score_candidates(stack.levels[d], cells, cands, unknown)
-        if penalty is not None:
-            scores = scores * penalty.block_bound(cands, 1 << d, angles, stack.grid.resolution)
-        order = np.argsort(-scores, kind="stable")
-        for k in order:
-            s = float(scores[k])
-            if s <= best[0]:
-                return
-            if d == 0:
-                best[0], best[1] = s, (int(cands[k, 0]), int(cands[k, 1]), int(cands[k, 2]))
-                continue
-            half = 1 << (d - 1)
-            a, x, y = cands[k]
-            kids = [(a, x + i, y + j) for i in (0, half) for j in (0, half) if x + i <= w and y + j <= w]
-            recurse(np.array(kids, dtype=np.int32), d - 1)
-
-    recurse(cands, depth)
-    if best[1] is None:
+    w_t = penalty.translation_weight if penalty is not None else 0.0
+    w_r = penalty.rotation_weight if penalty is not None else 0.0
+    ang = np.zeros(cells.shape[0]) if angles is None else np.ascontiguousarray(angles, dtype=np.float64)
+    a, x, y, s = _kernels.branch_and_bound(stack.array, cells, ang, int(linear_cells), float(min_score),
+                                           float(stack.grid.unknown), float(w_t), float(w_r), float(stack.grid.resolution))
+    if a < 0:
         return None
-    a, x, y = best[1]
-    return a, x, y, best[0]
+    return int(a), int(x), int(y), float(s)
