@@ -73,8 +73,8 @@ class RefineConfig(_Section):
 
     enabled: bool = Field(True, description="Refine the correlative pose below cell size.")
     occupied_space_weight: float = Field(1.0, gt=0.0, description="Weight of the grid term.")
-    translation_weight: float = Field(10.0, ge=0.0, description="Weight pulling x/y toward the correlative pose.")
-    rotation_weight: float = Field(40.0, ge=0.0, description="Weight pulling theta toward the correlative pose.")
+    translation_weight: float = Field(3.0, ge=0.0, description="Weight pulling x/y toward the correlative pose.")
+    rotation_weight: float = Field(10.0, ge=0.0, description="Weight pulling theta toward the correlative pose.")
     max_iterations: int = Field(20, ge=1, description="Gauss-Newton iterations at most.")
 
 
@@ -87,8 +87,8 @@ class LoopClosureConfig(_Section):
     angular_search_window_deg: float = Field(15.0, gt=0.0, le=180.0, description="Half-width of the rotation window [deg].")
     branch_depth: int = Field(6, ge=1, le=8, description="Precomputation grids of widths 1 … 2^depth cells.")
     voxel_filter_size: float = Field(0.05, ge=0.0, description="Scan points are thinned to one per cell of this size for loop-closure matching [m].")
-    sample_every_n_nodes: int = Field(10, ge=1, description="Every n-th node is matched against nearby finished submaps.")
-    max_submaps_per_node: int = Field(2, ge=1, description="A sampled node is matched against at most this many nearest finished submaps.")
+    sample_every_n_nodes: int = Field(5, ge=1, description="Every n-th node is matched against nearby finished submaps.")
+    max_submaps_per_node: int = Field(3, ge=1, description="A sampled node is matched against at most this many nearest finished submaps.")
     max_searches_per_submap: int = Field(8, ge=0, description="A newly finished submap is matched against at most this many earlier nearby nodes.")
     exclude_recent_submaps: int = Field(2, ge=0, description="The newest finished submaps are left to local SLAM.")
     max_constraint_distance: float = Field(10.0, gt=0.0, description="Only submaps whose centre lies this close to the node's estimate are searched [m].")
@@ -96,7 +96,7 @@ class LoopClosureConfig(_Section):
     loop_sigma_rotation_deg: float = Field(0.3, gt=0.0, description="Standard deviation of a loop constraint's rotation [deg].")
     min_local_sigma_translation: float = Field(0.01, gt=0.0, description="Floor on the translation sigma of node-in-submap constraints from the local matcher's covariance [m].")
     min_local_sigma_rotation_deg: float = Field(0.1, gt=0.0, description="Floor on their rotation sigma [deg].")
-    huber_scale: float = Field(1.0, gt=0.0, description="Huber threshold (in standard deviations) of the robust loop-constraint noise.")
+    huber_scale: float = Field(5.0, gt=0.0, description="Huber threshold (in standard deviations) of the robust loop-constraint noise.")
     max_residual_translation: float = Field(0.3, gt=0.0, description="A loop constraint whose residual after optimization exceeds this [m] is removed.")
     max_residual_rotation_deg: float = Field(3.0, gt=0.0, description="... or this [deg].")
     optimize_every_n_nodes: int = Field(90, ge=1, description="Optimize the pose graph after this many new nodes (and once at the end).")

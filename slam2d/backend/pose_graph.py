@@ -100,24 +100,29 @@ class PoseGraph:
         self.iterations += opt.iterations()
         self.last_error = (before, self.graph.error(self.values))
 
-    def optimize(self) -> list[LoopFactor]:
-        """Solve; drop loop constraints whose residual stays large; returns the dropped ones."""
+    def optimize(self, max_rounds: int = 6) -> list[LoopFactor]:
+        """Solve; then repeatedly drop the worst loop constraints whose residual stays large and
+        solve again. Only the worst quarter of the offenders goes per round, so that a few false
+        constraints that bend the graph do not take the true ones with them. Returns the dropped."""
         self._solve()
         dropped = []
-        for _ in range(3):
+        for _ in range(max_rounds):
             bad = []
             for f in self.loops:
                 r = self.residual(f)
-                if math.hypot(r[0], r[1]) > self.max_residual_trans or abs(r[2]) > self.max_residual_rot:
-                    bad.append(f)
+                excess = max(math.hypot(r[0], r[1]) / self.max_residual_trans, abs(r[2]) / self.max_residual_rot)
+                if excess > 1.0:
+                    bad.append((excess, f))
             if not bad:
                 break
-            for f in bad:
+            bad.sort(key=lambda b: -b[0])
+            worst = [f for _, f in bad[: max(1, len(bad) // 4)]]
+            for f in worst:
                 self.graph.remove(f.index)
                 self.loops.remove(f)
                 f.record["in_final_graph"] = False
                 f.record["reason"] = "residual after optimization"
                 self.removed.append(f)
-            dropped.extend(bad)
+            dropped.extend(worst)
             self._solve()
         return dropped
