@@ -164,8 +164,10 @@ def main(argv=None) -> int:
     ap.add_argument("--rerun", action="store_true", help="also time each run with --rerun (recording cost and size)")
     ap.add_argument("--jobs", type=int, default=1, help="datasets run in parallel (default 1: timings undisturbed)")
     ap.add_argument("--out", default=str(ROOT / "benchmarks"), help="folder for runs and plots")
+    ap.add_argument("--title", default="Benchmarks", help="heading of the markdown file")
     ap.add_argument("--markdown", default=str(ROOT / "BENCHMARKS.md"))
-    ap.add_argument("--extra", default="", help="extra arguments for slam2d run, e.g. '--no-loop-closure'")
+    ap.add_argument("--json", default=str(ROOT / "benchmarks.json"))
+    ap.add_argument("--extra", default="", help="extra arguments for slam2d run, e.g. '--no-loop-closure' (use --extra=...)")
     args = ap.parse_args(argv)
     args.extra = args.extra.split()
     if not (SHARED / "datasets").is_dir():
@@ -188,9 +190,9 @@ def main(argv=None) -> int:
     meta = {"date": time.strftime("%Y-%m-%d %H:%M"), "machine": f"{platform.machine()}, {os.cpu_count()} cores",
             "python": platform.python_version(), "config": os.path.relpath(args.config, ROOT),
             "extra_args": args.extra, "jobs": args.jobs}
-    (ROOT / "benchmarks.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2, default=float) + "\n")
+    Path(args.json).write_text(json.dumps({"meta": meta, "rows": rows}, indent=2, default=float) + "\n")
     flags = "".join(f" --{f}" for f in ("peers", "rerun") if getattr(args, f))
-    md = [f"# Benchmarks", "",
+    md = [f"# {args.title}", "",
           f"`python tools/benchmark.py{flags}` on {meta['date']} ({meta['machine']}, "
           f"Python {meta['python']}), config `{meta['config']}`{', slam2d run ' + ' '.join(args.extra) if args.extra else ''}. "
           "Wall time and peak RSS are those of the whole process; accuracy is the relations metric "
