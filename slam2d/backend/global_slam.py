@@ -48,9 +48,8 @@ class GlobalSlam:
         return compose(self.correction, self.nodes[j]["local"])
 
     def global_submap(self, k) -> np.ndarray:
-        if self.optimizations:
-            return self.graph.submap_pose(k)
-        return compose(self.correction, self.submap_local[k])
+        """A submap's global pose is its first node's."""
+        return self.global_node(self.submap_anchor[k])
 
     # ---- input from local SLAM
     def add_node(self, scan, local_pose, hits, covariance, inserted_into):
@@ -65,8 +64,8 @@ class GlobalSlam:
             if k not in self.submap_local:
                 self.submap_local[k] = np.asarray(sub_local, float)
                 self.submap_anchor[k] = j
-                self.graph.add_submap(k, compose(self.correction, sub_local))
-            self.graph.add_intra(k, j, between(self.submap_local[k], local_pose), cov)
+            if self.submap_anchor[k] != j:
+                self.graph.add_intra(self.submap_anchor[k], j, between(self.submap_local[k], local_pose), cov)
         if self.lc.enabled and len(self.node_order) % self.lc.sample_every_n_nodes == 0:
             self._search_node(j)
         self.since_optimize += 1
@@ -130,7 +129,7 @@ class GlobalSlam:
             rec.update({"relative_pose": [float(v) for v in res.relative], "score": round(res.score, 4), "accepted": True,
                         "reason": "accepted", "in_final_graph": True})
             sig = [lc.loop_sigma_translation, lc.loop_sigma_translation, math.radians(lc.loop_sigma_rotation_deg)]
-            self.graph.add_loop(k, j, res.relative, sig, rec)
+            self.graph.add_loop(self.submap_anchor[k], j, res.relative, sig, rec)
         self.records.append(rec)
 
     # ---- optimization

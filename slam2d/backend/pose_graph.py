@@ -1,9 +1,10 @@
 """The pose graph (Hess et al. 2016, Sec. V; Cartographer's sparse pose adjustment), solved with GTSAM.
 
-Variables are submap poses (``s``) and node poses (``n``) in the map frame. Factors:
-a prior on the first submap; node-in-submap constraints from local SLAM (their noise from
-the real-time matcher's covariance); loop-closure constraints under a Huber robust noise
-model. ``optimize`` runs batch Levenberg-Marquardt from the current estimate; loop
+Variables are node poses in the map frame; a submap's pose is the pose of its first node
+(the node whose local pose started it), so a submap needs no variable of its own. Factors:
+a prior on the first node; node-in-submap constraints from local SLAM between a submap's
+first node and each node inserted into it (their noise from the real-time matcher's
+covariance); loop-closure constraints under a Huber robust noise model. ``optimize`` runs batch Levenberg-Marquardt from the current estimate; loop
 constraints whose residual stays large afterwards are removed and the graph solved
 again. This is the only module that imports gtsam.
 """
@@ -31,7 +32,7 @@ def _arr(p: gtsam.Pose2) -> np.ndarray:
 @dataclass
 class LoopFactor:
     index: int          # position in the factor graph
-    submap: int
+    anchor: int         # the submap's first node
     node: int
     relative: np.ndarray
     record: dict        # the constraints.jsonl record, updated with the outcome
@@ -51,20 +52,13 @@ class PoseGraph:
         self.last_error = (math.nan, math.nan)
 
     # ---- variables
-    def add_submap(self, k: int, pose):
-        if not self.values.exists(_key("s", k)):
-            self.values.insert(_key("s", k), _pose(pose))
-            if not self.has_prior:
-                self.graph.add(gtsam.PriorFactorPose2(_key("s", k), _pose(pose),
-                                                      gtsam.noiseModel.Diagonal.Sigmas(np.array([1e-3, 1e-3, 1e-4]))))
-                self.has_prior = True
-
     def add_node(self, j: int, pose):
         if not self.values.exists(_key("n", j)):
             self.values.insert(_key("n", j), _pose(pose))
-
-    def submap_pose(self, k) -> np.ndarray:
-        return _arr(self.values.atPose2(_key("s", k)))
+            if not self.has_prior:
+                self.graph.add(gtsam.PriorFactorPose2(_key("n", j), _pose(pose),
+                                                      gtsam.noiseModel.Diagonal.Sigmas(np.array([1e-3, 1e-3, 1e-4]))))
+                self.has_prior = True
 
     def node_pose(self, j) -> np.ndarray:
         return _arr(self.values.atPose2(_key("n", j)))
@@ -73,22 +67,23 @@ class PoseGraph:
         return self.values.exists(_key("n", j))
 
     # ---- factors
-    def add_intra(self, k: int, j: int, relative, covariance: np.ndarray):
+    def add_intra(self, anchor: int, j: int, relative, covariance: np.ndarray):
+        """Node ``j`` in the submap whose first node is ``anchor``."""
         noise = gtsam.noiseModel.Gaussian.Covariance(np.asarray(covariance, dtype=float))
-        self.graph.add(gtsam.BetweenFactorPose2(_key("s", k), _key("n", j), _pose(relative), noise))
+        self.graph.add(gtsam.BetweenFactorPose2(_key("n", anchor), _key("n", j), _pose(relative), noise))
 
-    def add_loop(self, k: int, j: int, relative, sigmas, record: dict) -> LoopFactor:
+    def add_loop(self, anchor: int, j: int, relative, sigmas, record: dict) -> LoopFactor:
         base = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sigmas, dtype=float))
         noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(self.huber_scale), base)
-        self.graph.add(gtsam.BetweenFactorPose2(_key("s", k), _key("n", j), _pose(relative), noise))
-        f = LoopFactor(self.graph.size() - 1, k, j, np.asarray(relative, dtype=float), record)
+        self.graph.add(gtsam.BetweenFactorPose2(_key("n", anchor), _key("n", j), _pose(relative), noise))
+        f = LoopFactor(self.graph.size() - 1, anchor, j, np.asarray(relative, dtype=float), record)
         self.loops.append(f)
         return f
 
     def residual(self, f: LoopFactor) -> np.ndarray:
-        s = self.values.atPose2(_key("s", f.submap))
+        a = self.values.atPose2(_key("n", f.anchor))
         n = self.values.atPose2(_key("n", f.node))
-        return _arr(s.between(n).between(_pose(f.relative)))
+        return _arr(a.between(n).between(_pose(f.relative)))
 
     # ---- solve
     def _solve(self):
@@ -100,13 +95,13 @@ class PoseGraph:
         self.iterations += opt.iterations()
         self.last_error = (before, self.graph.error(self.values))
 
-    def optimize(self, max_rounds: int = 6) -> list[LoopFactor]:
+    def optimize(self, max_rounds: int = 20) -> list[LoopFactor]:
         """Solve; then repeatedly drop the worst loop constraints whose residual stays large and
         solve again. Only the worst quarter of the offenders goes per round, so that a few false
         constraints that bend the graph do not take the true ones with them. Returns the dropped."""
         self._solve()
         dropped = []
-        for _ in range(max_rounds):
+        for rnd in range(max_rounds + 1):
             bad = []
             for f in self.loops:
                 r = self.residual(f)
@@ -116,7 +111,8 @@ class PoseGraph:
             if not bad:
                 break
             bad.sort(key=lambda b: -b[0])
-            worst = [f for _, f in bad[: max(1, len(bad) // 4)]]
+            # the worst quarter per round; in the last round every remaining offender
+            worst = [f for _, f in (bad if rnd == max_rounds else bad[: max(1, len(bad) // 4)])]
             for f in worst:
                 self.graph.remove(f.index)
                 self.loops.remove(f)
