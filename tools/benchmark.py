@@ -222,7 +222,7 @@ def main(argv=None) -> int:
             rc = lo["recall"]
             md.append(f"  loop-closure recall against the reference's revisits: {rc['closed']} of {rc['episodes']} episodes")
         for p in row.get("plots", []):
-            md.append(f"  ![{p}](benchmarks/{p})")
+            md.append(f"  ![{p}]({os.path.relpath(outdir / p, Path(args.markdown).parent)})")
     Path(args.markdown).write_text("\n".join(md) + "\n")
     print("\n".join(md))
     return 0
