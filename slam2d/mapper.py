@@ -83,6 +83,8 @@ class Mapper:
         self.tracker = tracker
         self.observer = observer or Observer()
         self.global_slam = global_slam
+        if global_slam is not None:
+            global_slam.observer = self.observer
 
     def run(self, source, progress=None, info: dict | None = None) -> RunResult:
         stamps, times, poses, nodes = [], [], [], []
@@ -135,7 +137,6 @@ class Mapper:
             node_global = self.global_slam.finish()
             poses = globalize(poses, node_global)
             stage_ms["final_optimization"] = [(time.perf_counter() - t1) * 1e3]
-            self.observer.on_optimized(self)
         timings = {k: _percentiles(v) for k, v in stage_ms.items()}
         result = RunResult(stamps, np.array(times), poses, nodes, counts, timings)
         self.observer.on_finish(self)

@@ -22,8 +22,11 @@ log = logging.getLogger(__name__)
 
 
 class GlobalSlam:
-    def __init__(self, cfg):
+    def __init__(self, cfg, observer=None):
+        from slam2d.observer import Observer
+
         self.cfg = cfg
+        self.observer = observer or Observer()
         lc = cfg.loop_closure
         self.lc = lc
         self.graph = PoseGraph(lc.huber_scale, lc.max_residual_translation, math.radians(lc.max_residual_rotation_deg))
@@ -131,6 +134,7 @@ class GlobalSlam:
             sig = [lc.loop_sigma_translation, lc.loop_sigma_translation, math.radians(lc.loop_sigma_rotation_deg)]
             self.graph.add_loop(self.submap_anchor[k], j, res.relative, sig, rec)
         self.records.append(rec)
+        self.observer.on_loop_candidate(rec)
 
     # ---- optimization
     def optimize(self):
@@ -144,8 +148,18 @@ class GlobalSlam:
         self.since_optimize = 0
         last = self.node_order[-1]
         self.correction = compose(self.graph.node_pose(last), inverse(self.nodes[last]["local"]))
+        self.last_optimize_seconds = time.perf_counter() - t0
+        self.observer.on_optimized(self)
         if dropped:
             log.info("dropped %d loop constraints with large residuals", len(dropped))
+
+    def submap_transforms(self) -> dict[int, np.ndarray]:
+        """global ← local transform of every finished submap's grid (from its first node)."""
+        out = {}
+        for k, m in self.matchers.items():
+            a = self.submap_anchor[k]
+            out[k] = compose(self.global_node(a), inverse(self.nodes[a]["local"]))
+        return out
 
     def finish(self) -> dict[int, np.ndarray]:
         self.optimize()

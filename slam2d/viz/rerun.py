@@ -18,11 +18,12 @@ sent with ``send_columns`` in blocks, so logging costs little per scan.
 from __future__ import annotations
 
 
+import math
 import os
 
 import numpy as np
 
-from slam2d.geometry import transform_points
+from slam2d.geometry import compose, transform_points
 from slam2d.observer import Observer
 
 os.environ.setdefault("RERUN_ANALYTICS", "0")
@@ -62,10 +63,18 @@ def occupancy_bytes(grid) -> tuple[bytes, int, int]:
     return out.tobytes(), p.shape[1], p.shape[0]
 
 
-def grid_map(grid) -> rr.GridMap:
+def grid_map(grid, transform=None) -> rr.GridMap:
+    """The grid as a GridMap; ``transform`` (x, y, θ) moves it from its local frame to the map frame."""
     data, w, h = occupancy_bytes(grid)
+    corner = np.array([float(grid.origin[0]), float(grid.origin[1]), 0.0])
+    theta = 0.0
+    if transform is not None:
+        c, s = math.cos(transform[2]), math.sin(transform[2])
+        corner = np.array([transform[0] + c * corner[0] - s * corner[1], transform[1] + s * corner[0] + c * corner[1], 0.0])
+        theta = float(transform[2])
     return rr.GridMap(data=data, format=rr.components.ImageFormat(width=w, height=h, color_model="L", channel_datatype="U8"),
-                      cell_size=grid.resolution, translation=[float(grid.origin[0]), float(grid.origin[1]), 0.0],
+                      cell_size=grid.resolution, translation=corner.tolist(),
+                      quaternion=rr.Quaternion(xyzw=[0.0, 0.0, math.sin(theta / 2), math.cos(theta / 2)]),
                       colormap=rr.components.Colormap.RvizMap)
 
 
@@ -83,6 +92,7 @@ class RerunObserver(Observer):
         self._seq = 0
         self._inserted = 0
         self._logged_finished = set()
+        self._global = None
 
     @staticmethod
     def _empty():
@@ -96,7 +106,11 @@ class RerunObserver(Observer):
                                      level=rr.TextLogLevel.INFO), static=True)
 
     def on_scan(self, scan, result) -> None:
+        # scans, robot and active submap are drawn in the map frame: the local pose moved by the
+        # latest optimization's correction (identity before the first one, or without global SLAM)
         pose = np.asarray(result.local_pose, dtype=float)
+        if self._global is not None:
+            pose = compose(self._global.correction, pose)
         rd = result.range_data
         b = self._buf
         b["seq"].append(self._seq)
@@ -115,7 +129,7 @@ class RerunObserver(Observer):
             if sub is not None and self._inserted % self.submap_every == 0:
                 rr.set_time("scan", sequence=self._seq - 1)
                 rr.set_time("time", **self._time_kw(scan.timestamp))
-                rr.log("/world/submaps/active", grid_map(sub.grid))
+                rr.log("/world/submaps/active", grid_map(sub.grid, None if self._global is None else self._global.correction))
         for sub in getattr(result, "finished_submaps", ()) or ():
             self.on_submap_finished(sub)
         if self._seq % self.trajectory_every == 0:
@@ -160,9 +174,42 @@ class RerunObserver(Observer):
         if submap.index in self._logged_finished:
             return
         self._logged_finished.add(submap.index)
-        rr.log(f"/world/submaps/{submap.index}", grid_map(submap.grid), static=True)
+        rr.set_time("scan", sequence=self._seq - 1 if self._seq else 0)
+        rr.log(f"/world/submaps/{submap.index}", grid_map(submap.grid))
         rr.log("/events", rr.TextLog(f"submap {submap.index} finished ({submap.num_range_data} scans)",
                                      level=rr.TextLogLevel.INFO))
+
+    def on_loop_candidate(self, record: dict) -> None:
+        rr.set_time("scan", sequence=self._seq - 1 if self._seq else 0)
+        rr.log("/metrics/timing/loop_search", rr.Scalars(record["search_ms"]))
+        if record["score"] is not None:
+            rr.log("/metrics/score/loop", rr.Scalars(record["score"]))
+        level = rr.TextLogLevel.INFO if record["accepted"] else rr.TextLogLevel.DEBUG
+        what = f"accepted, score {record['score']:.3f}" if record["accepted"] else record["reason"]
+        rr.log("/events", rr.TextLog(f"loop candidate scan {record['to_scan']} vs submap {record['submap']}: {what}",
+                                     level=level))
+
+    def on_optimized(self, global_slam) -> None:
+        """Move finished submaps and the pose graph to the optimized poses."""
+        self._global = global_slam
+        seq = self._seq - 1 if self._seq else 0
+        rr.set_time("scan", sequence=seq)
+        rr.log("/metrics/timing/optimization", rr.Scalars(1e3 * getattr(global_slam, "last_optimize_seconds", 0.0)))
+        before, after = global_slam.graph.last_error
+        rr.log("/metrics/optimization/error", rr.Scalars(after))
+        for k, T in global_slam.submap_transforms().items():
+            rr.log(f"/world/submaps/{k}", grid_map(global_slam.matchers[k].submap.grid, T))
+        nodes = np.array([global_slam.global_node(j)[:2] for j in global_slam.node_order], np.float32).reshape(-1, 2)
+        loops, rejected = [], []
+        for r in global_slam.records:
+            if r["relative_pose"] is None:
+                continue
+            seg = (global_slam.global_node(r["from_scan"])[:2], global_slam.global_node(r["to_scan"])[:2])
+            (loops if r.get("in_final_graph") else rejected).append(seg)
+        self.on_constraints(seq, nodes, np.zeros((0, 2, 2)), np.array(loops).reshape(-1, 2, 2),
+                            np.array(rejected).reshape(-1, 2, 2))
+        rr.log("/events", rr.TextLog(f"pose graph optimized: {len(global_slam.graph.loops)} loop constraints, "
+                                     f"error {before:.1f} -> {after:.1f}", level=rr.TextLogLevel.INFO))
 
     def on_constraints(self, seq, nodes, node_in_submap, loops=(), rejected=()) -> None:
         """Pose graph: node positions (N, 2) and constraints as (M, 2, 2) segment arrays."""
