@@ -75,6 +75,7 @@ class RunResult:
     nodes: list[Node]
     counts: dict
     timings: dict
+    ground_truth_ate: dict | None = None  # when the source carries ground truth (the simulator)
 
 
 class Mapper:
@@ -88,6 +89,7 @@ class Mapper:
 
     def run(self, source, progress=None, info: dict | None = None) -> RunResult:
         stamps, times, poses, nodes = [], [], [], []
+        ground_truth = []
         counts = {"scans": 0, "nodes": 0, "invalid_readings": 0, "no_return_readings": 0, "readings": 0,
                   "timestamp_reversals": 0, "beams_min": None, "beams_max": None}
         stage_ms: dict[str, list[float]] = {}
@@ -112,6 +114,7 @@ class Mapper:
                 counts["timestamp_reversals"] += 1
             last_t = scan.timestamp
             stamps.append(scan.timestamp_text or f"{scan.timestamp:.9f}")
+            ground_truth.append(scan.ground_truth)
             times.append(scan.timestamp)
             poses.append(res.local_pose)
             if self.global_slam is not None:
@@ -139,6 +142,10 @@ class Mapper:
             stage_ms["final_optimization"] = [(time.perf_counter() - t1) * 1e3]
         timings = {k: _percentiles(v) for k, v in stage_ms.items()}
         result = RunResult(stamps, np.array(times), poses, nodes, counts, timings)
+        if ground_truth and all(g is not None for g in ground_truth):
+            from slam2d.eval.ate import ate
+
+            result.ground_truth_ate = ate(poses, np.array(ground_truth, dtype=float))
         self.observer.on_finish(self)
         return result
 

@@ -75,3 +75,52 @@ def test_global_slam_on_the_simulated_loops(sim_run):
     k = 400
     e = between(between(gt[:-k], gt[k:]), between(res.poses[:-k], res.poses[k:]))
     assert np.hypot(e[:, 0], e[:, 1]).mean() < 0.15
+
+
+def test_summary_reports_ate_against_ground_truth(tmp_path):
+    import json
+
+    from slam2d.cli import main
+
+    out = tmp_path / "run"
+    assert main(["run", str(BUNDLED), "--out", str(out), "--no-progress"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["ate_vs_ground_truth"]["trans_m"]["rmse"] < 0.1
+    assert s["loop_closure"]["in_final_graph"] > 10
+    local = tmp_path / "local"
+    assert main(["run", str(BUNDLED), "--out", str(local), "--no-progress", "--odometry-only"]) == 0
+    odo = json.loads((local / "summary.json").read_text())
+    assert odo["ate_vs_ground_truth"]["trans_m"]["rmse"] > 5 * s["ate_vs_ground_truth"]["trans_m"]["rmse"]
+
+
+def test_branch_and_bound_equals_exhaustive_on_a_real_submap():
+    """A finished submap from the Intel log; a node's scan searched by B&B and exhaustively."""
+    import itertools
+
+    from conftest import dataset
+    from slam2d.backend.loop_closure import SubmapMatcher, loop_points
+    from slam2d.io.carmen import CarmenLog
+    from slam2d.matching.search import PrecomputationStack, SearchParameters, branch_and_bound, exhaustive
+    from slam2d.range_data import range_data
+
+    cfg = SlamConfig()
+    tracker = LocalSlam(cfg)
+    scans = list(itertools.islice(CarmenLog(dataset("intel")), 1200))
+    results = [tracker.add_scan(s) for s in scans]
+    assert tracker.finished_submaps, "no submap finished"
+    sub = tracker.finished_submaps[0]
+    m = SubmapMatcher(sub, 4)
+    rng = np.random.default_rng(0)
+    for j in rng.choice(sub.node_indices, 3, replace=False):
+        pts = loop_points(range_data(scans[j], cfg.range_filter).hits, 0.05)
+        initial = results[j].local_pose + [0.2, -0.15, 0.03]
+        params = SearchParameters.make(0.6, 0.08, m.grid.resolution, pts)
+        cells = m.grid.cells(pts, initial, params.angles)
+        ex = exhaustive(m.grid, cells, params.linear_cells)
+        a, dx, dy, s = branch_and_bound(PrecomputationStack(m.grid, 4), cells, params.linear_cells, 0.0)
+        w = params.linear_cells
+        assert s == pytest.approx(float(ex.max()), rel=1e-6)
+        assert ex[a, dy + w, dx + w] == pytest.approx(s, rel=1e-6)
+        # and the best pose is the node's own pose (within a cell and an angular step)
+        best = initial + [dx * m.grid.resolution, dy * m.grid.resolution, params.angles[a]]
+        assert np.hypot(*(best - results[j].local_pose)[:2]) <= 0.075
