@@ -49,7 +49,7 @@ def test_robotlaser1(tmp_path):
     ranges = " ".join(["1.0", "2.0", "30.0", "4.0", "5.0"])
     line = (f"ROBOTLASER1 0 -1.5708 3.1416 0.785398 30.0 0.01 0 {n} {ranges} 0 "
             "1.0 2.0 0.1 0.8 2.0 0.1 0.0 0.0 0.5 0.5 0.0 55.5 host 1.0\n")
-    line2 = (f"ROBOTLASER1 0 -1.0 2.0 0.5 30.0 0.01 0 3 1 2 3 0 "
+    line2 = ("ROBOTLASER1 0 -1.0 2.0 0.5 30.0 0.01 0 3 1 2 3 0 "
              "1.0 2.0 0.1 0.8 2.0 0.1 0.0 0.0 0.5 0.5 0.0 55.7 host 1.2\n")
     scans = list(CarmenLog(write(tmp_path, line + line2)))
     s = scans[0]

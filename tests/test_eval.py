@@ -13,7 +13,7 @@ from slam2d.eval.relations import Relations, read_relations, relations_metric
 from slam2d.geometry import between, compose
 from slam2d.io.trajectory import read_tum, write_tum
 
-from conftest import BUNDLED, SHARED, dataset, relations
+from conftest import SHARED, dataset, relations
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -79,7 +79,7 @@ def bench_dataset(name: str, args, outdir: Path) -> dict:
         if rv["returncode"] == 0:
             row["rerun"] = {"wall_s": rv["wall_s"], "peak_rss_mb": rv["peak_rss_mb"], "rrd_mb": rrd.stat().st_size / 2 ** 20,
                             "overhead": rv["wall_s"] / r["wall_s"] - 1.0}
-    o = timed(slam + ["--out", str(outdir / f"{name}_odometry"), "--odometry-only"])
+    timed(slam + ["--out", str(outdir / f"{name}_odometry"), "--odometry-only"])
     row["odometry"] = {"relations": relations_of(outdir / f"{name}_odometry" / "trajectory.txt", rel)}
     if args.peers:
         peer = SHARED / "tools" / "peer_karto.py"

@@ -9,13 +9,11 @@ silently dropped.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
-from slam2d.errors import InputError
+from slam2d.io._text import read_numeric_table
 from slam2d.geometry import between, compose, interpolate_pose, inverse
 
 
@@ -27,26 +25,8 @@ class Relations:
 
 
 def read_relations(path) -> Relations:
-    path = Path(path)
-    if not path.exists():
-        raise InputError(path, "no such file")
-    rows = []
-    with open(path) as f:
-        for n, line in enumerate(f, start=1):
-            parts = line.split()
-            if not parts or parts[0].startswith("#"):
-                continue
-            if len(parts) != 8:
-                raise InputError(path, f"relation needs 8 fields (t1 t2 x y z roll pitch yaw), found {len(parts)}", line=n)
-            try:
-                v = [float(p) for p in parts]
-            except ValueError:
-                raise InputError(path, "non-numeric field in relation", line=n) from None
-            if not all(math.isfinite(x) for x in v):
-                raise InputError(path, "non-finite value in relation", line=n)
-            rows.append((v[0], v[1], v[2], v[3], v[7]))
-    if not rows:
-        raise InputError(path, "no relations in the file")
+    rows, _ = read_numeric_table(path, 8, "t1 t2 x y z roll pitch yaw", "relation")
+    rows = [(v[0], v[1], v[2], v[3], v[7]) for v in rows]
     a = np.array(rows)
     return Relations(a[:, 0], a[:, 1], a[:, 2:5])
 

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import bz2
 import gzip
+import math
 import lzma
 import zlib
 from pathlib import Path
@@ -89,3 +90,33 @@ def iter_lines(path: str | Path):
     except DECOMPRESSION_ERRORS as e:
         what = "not valid UTF-8 text" if isinstance(e, UnicodeDecodeError) else f"corrupt or truncated file ({e})"
         raise InputError(path, what, line=n + 1) from None
+
+
+def read_numeric_table(path, fields: int, layout: str, what: str):
+    """Rows of ``fields`` finite numbers from a whitespace-separated text file ('#' comments).
+
+    Returns (rows as lists of floats, the first token of each row as written). Errors name the
+    file and line: wrong field count (``layout`` describes the fields), non-numeric, non-finite.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError(path, "no such file")
+    rows, firsts = [], []
+    with open(path) as f:
+        for n, line in enumerate(f, start=1):
+            parts = line.split()
+            if not parts or parts[0].startswith("#"):
+                continue
+            if len(parts) != fields:
+                raise InputError(path, f"{what} needs {fields} fields ({layout}), found {len(parts)}", line=n)
+            try:
+                v = [float(p) for p in parts]
+            except ValueError:
+                raise InputError(path, f"non-numeric field in {what}", line=n) from None
+            if not all(math.isfinite(x) for x in v):
+                raise InputError(path, f"non-finite value in {what}", line=n)
+            rows.append(v)
+            firsts.append(parts[0])
+    if not rows:
+        raise InputError(path, f"no {what}s in the file")
+    return rows, firsts

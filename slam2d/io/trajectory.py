@@ -2,11 +2,10 @@
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 
-from slam2d.errors import InputError
+from slam2d.io._text import read_numeric_table
 from slam2d.geometry import quaternion_to_yaw
 
 
@@ -23,26 +22,7 @@ def write_tum(path, stamps: list[str], poses: np.ndarray) -> None:
 
 def read_tum(path) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """(timestamps (N,), poses (N, 3), timestamp strings)."""
-    path = Path(path)
-    if not path.exists():
-        raise InputError(path, "no such file")
-    ts, poses, texts = [], [], []
-    with open(path) as f:
-        for n, line in enumerate(f, start=1):
-            parts = line.split()
-            if not parts or parts[0].startswith("#"):
-                continue
-            if len(parts) != 8:
-                raise InputError(path, f"TUM line needs 8 fields (timestamp x y z qx qy qz qw), found {len(parts)}", line=n)
-            try:
-                v = [float(p) for p in parts]
-            except ValueError:
-                raise InputError(path, "non-numeric field in TUM line", line=n) from None
-            if not all(math.isfinite(x) for x in v):
-                raise InputError(path, "non-finite value in TUM line", line=n)
-            ts.append(v[0])
-            texts.append(parts[0])
-            poses.append((v[1], v[2], float(quaternion_to_yaw(v[4], v[5], v[6], v[7]))))
-    if not ts:
-        raise InputError(path, "no poses in the trajectory file")
+    rows, texts = read_numeric_table(path, 8, "timestamp x y z qx qy qz qw", "TUM line")
+    ts = [v[0] for v in rows]
+    poses = [(v[1], v[2], float(quaternion_to_yaw(v[4], v[5], v[6], v[7]))) for v in rows]
     return np.array(ts), np.array(poses, dtype=float).reshape(-1, 3), texts

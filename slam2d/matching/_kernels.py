@@ -59,26 +59,28 @@ def score_window(values, cells, w, unknown):
     return out
 
 
+@njit(cache=True, inline="always")
+def _level_score(level, cells, a, dx, dy, unknown):
+    rows, cols = level.shape
+    n = cells.shape[1]
+    s = 0.0
+    for i in range(n):
+        c = cells[a, i, 0] + dx
+        r = cells[a, i, 1] + dy
+        if r < 0 or r >= rows or c < 0 or c >= cols:
+            s += unknown
+        else:
+            s += level[r, c]
+    return s / n
+
+
 @njit(cache=True)
 def score_candidates(values, cells, cands, unknown):
     """Mean grid value for candidates (K, 3) = [angle index, dx, dy] (integer cells)."""
-    rows, cols = values.shape
-    n = cells.shape[1]
     k_n = cands.shape[0]
     out = np.empty(k_n, dtype=np.float32)
     for k in range(k_n):
-        a = cands[k, 0]
-        dx = cands[k, 1]
-        dy = cands[k, 2]
-        s = 0.0
-        for i in range(n):
-            c = cells[a, i, 0] + dx
-            r = cells[a, i, 1] + dy
-            if r < 0 or r >= rows or c < 0 or c >= cols:
-                s += unknown
-            else:
-                s += values[r, c]
-        out[k] = s / n
+        out[k] = _level_score(values, cells, cands[k, 0], cands[k, 1], cands[k, 2], unknown)
     return out
 
 
@@ -226,21 +228,6 @@ def refine_pose(values, ox, oy, res, unknown, points, x0, y0, t0, w_occ, w_t, w_
         if not improved or step < 1e-6:
             break
     return x, y, t, cost, it + 1
-
-
-@njit(cache=True, inline="always")
-def _level_score(level, cells, a, dx, dy, unknown):
-    rows, cols = level.shape
-    n = cells.shape[1]
-    s = 0.0
-    for i in range(n):
-        c = cells[a, i, 0] + dx
-        r = cells[a, i, 1] + dy
-        if r < 0 or r >= rows or c < 0 or c >= cols:
-            s += unknown
-        else:
-            s += level[r, c]
-    return s / n
 
 
 @njit(cache=True, inline="always")
