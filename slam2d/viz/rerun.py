@@ -93,6 +93,9 @@ class RerunObserver(Observer):
         self._inserted = 0
         self._logged_finished = set()
         self._global = None
+        self._submap_logged: dict = {}
+        self._optimizations = 0
+        self.graph_every = 5  # the whole pose graph is re-sent after every n-th optimization (and at the end)
 
     @staticmethod
     def _empty():
@@ -198,7 +201,14 @@ class RerunObserver(Observer):
         before, after = global_slam.graph.last_error
         rr.log("/metrics/optimization/error", rr.Scalars(after))
         for k, T in global_slam.submap_transforms().items():
-            rr.log(f"/world/submaps/{k}", grid_map(global_slam.matchers[k].submap.grid, T))
+            last = self._submap_logged.get(k)
+            # a submap is re-sent only when the optimization moved it visibly (throttles the recording)
+            if last is None or np.hypot(*(T[:2] - last[:2])) > 0.02 or abs(T[2] - last[2]) > 0.0035:
+                rr.log(f"/world/submaps/{k}", grid_map(global_slam.matchers[k].submap.grid, T))
+                self._submap_logged[k] = T
+        self._optimizations += 1
+        if self._optimizations % self.graph_every:
+            return
         nodes = np.array([global_slam.global_node(j)[:2] for j in global_slam.node_order], np.float32).reshape(-1, 2)
         loops, rejected = [], []
         for r in global_slam.records:
