@@ -122,7 +122,7 @@ def cmd_run(args) -> int:
         total = min(total, args.max_scans) if total else args.max_scans
     out = OutputDir(args.out)
     if args.odometry_only:
-        tracker, mode = OdometryTracker(cfg), "odometry"
+        tracker, mode = OdometryTracker(cfg, args.input), "odometry"
     else:
         from slam2d.frontend import LocalSlam
 

@@ -41,14 +41,14 @@ class OdometryTracker:
 
     name = "odometry"
 
-    def __init__(self, cfg: SlamConfig):
+    def __init__(self, cfg: SlamConfig, source_path="input"):
         self.cfg = cfg
+        self.source_path = source_path
         self.filter = MotionFilter(cfg.motion_filter)
 
     def add_scan(self, scan) -> MatchingResult:
         if scan.odom_pose is None:
-            raise InputError(getattr(scan, "source", "input"), "has no odometry; run without --odometry-only",
-                             record=scan.index)
+            raise InputError(self.source_path, "scan has no odometry; run without --odometry-only", record=scan.index)
         rd = range_data(scan, self.cfg.range_filter)
         pose = np.asarray(scan.odom_pose, dtype=float)
         inserted = not self.filter.is_similar(scan.timestamp, pose)

@@ -20,16 +20,3 @@ class Observer:
     def on_optimized(self, global_slam) -> None: ...
 
     def on_finish(self, mapper) -> None: ...
-
-
-class Observers(Observer):
-    """Fans every call out to a list of observers."""
-
-    def __init__(self, observers=()):
-        self.observers = list(observers)
-
-    def __getattribute__(self, name):
-        if name.startswith("on_"):
-            obs = object.__getattribute__(self, "observers")
-            return lambda *a, **k: [getattr(o, name)(*a, **k) for o in obs]
-        return object.__getattribute__(self, name)

@@ -155,3 +155,21 @@ def test_failed_run_keeps_previous_outputs_whole(tmp_path, flaser_line):
     assert r.returncode != 0 and "bad.clf:6:" in r.stderr
     assert (out / "trajectory.txt").read_text() == before
     assert not [p for p in out.iterdir() if p.name.endswith(".partial")]
+
+
+def test_odometry_only_without_odometry_names_the_file(tmp_path):
+    from slam2d.io.mcap import McapWriter
+    from slam2d.io.simulator import SimConfig, simulate
+
+    p = tmp_path / "no_odom.mcap"
+    with open(p, "wb") as f:
+        w = McapWriter(f)
+        for _, s in zip(range(5), simulate(SimConfig(seed=1))):
+            s.odom_pose = None
+            w.write_scan(s)
+        w.finish()
+    r = slam2d("run", p, "--out", tmp_path / "o", "--odometry-only", "--no-progress")
+    assert r.returncode != 0 and r.stderr.strip().count("\n") == 0
+    assert "no_odom.mcap: record 0: scan has no odometry" in r.stderr
+    # local SLAM without odometry still runs (constant-velocity prediction)
+    assert slam2d("run", p, "--out", tmp_path / "l", "--no-progress").returncode == 0

@@ -3,8 +3,10 @@ solved by Levenberg-Marquardt in a numba kernel on a Catmull-Rom bicubic interpo
 
 The cost pulls every point toward high probability and the pose toward the correlative
 result (translation and rotation weights), which keeps the solution inside the basin the
-correlative search found. numba was chosen over ``scipy.optimize.least_squares`` by
-measurement: the scipy call costs ~1 ms of Python overhead per scan, the kernel ~0.1 ms.
+correlative search found. It runs on the probability grid, not on the likelihood field:
+the field is flat across a wall's width (every cell of a thick wall is "occupied"), which
+leaves no gradient below cell size (tests/test_matchers.py shows the refinement halving the
+error on the probability grid). The kernel costs ~0.2–0.3 ms per scan (BENCHMARKS.md).
 """
 from __future__ import annotations
 
