@@ -31,20 +31,23 @@ class Reference:
     total_reference_scans: int
 
     def dense(self, odom: np.ndarray | None) -> np.ndarray:
-        """A reference pose for every scan: key poses, and between them the last key pose
-        composed with the odometry increment (NaN before the first key scan or without odometry)."""
+        """A reference pose for every scan: key poses, and between them the nearer key pose (before
+        or after, by scan count) composed with the raw odometry increment to the scan; NaN where
+        there is no key pose to start from or no odometry."""
         n = len(odom) if odom is not None else int(self.scan_indices.max()) + 1
         out = np.full((n, 3), np.nan)
-        out[self.scan_indices] = self.poses
-        if odom is None:
+        keys = self.scan_indices
+        out[keys[keys < n]] = self.poses[keys < n]
+        if odom is None or len(keys) == 0:
             return out
-        k = 0
+        pos = np.searchsorted(keys, np.arange(n))  # first key index >= scan
         for i in range(n):
-            while k + 1 < len(self.scan_indices) and self.scan_indices[k + 1] <= i:
-                k += 1
-            j = self.scan_indices[k]
-            if j < i:
-                out[i] = compose(self.poses[k], between(odom[j], odom[i]))
+            k = pos[i]
+            if k < len(keys) and keys[k] == i:
+                continue
+            cands = [kk for kk in (k - 1, k) if 0 <= kk < len(keys)]
+            kk = min(cands, key=lambda c: abs(keys[c] - i))
+            out[i] = compose(self.poses[kk], between(odom[keys[kk]], odom[i]))
         return out
 
 
