@@ -95,7 +95,7 @@ class RerunObserver(Observer):
         self._global = None
         self._submap_logged: dict = {}
         self._optimizations = 0
-        self.graph_every = 5  # the whole pose graph is re-sent after every n-th optimization (and at the end)
+        self.graph_every = 1  # the pose graph is re-sent after every n-th optimization (and at the end)
 
     @staticmethod
     def _empty():
@@ -216,7 +216,11 @@ class RerunObserver(Observer):
                 continue
             seg = (global_slam.global_node(r["from_scan"])[:2], global_slam.global_node(r["to_scan"])[:2])
             (loops if r.get("in_final_graph") else rejected).append(seg)
-        self.on_constraints(seq, nodes, np.zeros((0, 2, 2)), np.array(loops).reshape(-1, 2, 2),
+        intra = []
+        for k, m in global_slam.matchers.items():
+            a = global_slam.global_node(global_slam.submap_anchor[k])[:2]
+            intra.extend((a, global_slam.global_node(j)[:2]) for j in m.submap.node_indices if j in global_slam.nodes)
+        self.on_constraints(seq, nodes, np.array(intra).reshape(-1, 2, 2), np.array(loops).reshape(-1, 2, 2),
                             np.array(rejected).reshape(-1, 2, 2))
         rr.log("/events", rr.TextLog(f"pose graph optimized: {len(global_slam.graph.loops)} loop constraints, "
                                      f"error {before:.1f} -> {after:.1f}", level=rr.TextLogLevel.INFO))
