@@ -66,6 +66,11 @@ class PoseGraph:
     def has_node(self, j) -> bool:
         return self.values.exists(_key("n", j))
 
+    def all_node_poses(self) -> tuple[np.ndarray, np.ndarray]:
+        """(node ids ascending, (N, 3) poses) of every node, in one call."""
+        ids = np.array([gtsam.Symbol(k).index() for k in self.values.keys()], dtype=np.int64)
+        return ids, np.asarray(gtsam.utilities.extractPose2(self.values), dtype=float).reshape(-1, 3)
+
     # ---- factors
     def add_intra(self, anchor: int, j: int, relative, covariance: np.ndarray):
         """Node ``j`` in the submap whose first node is ``anchor``."""

@@ -209,19 +209,25 @@ class RerunObserver(Observer):
         self._optimizations += 1
         if self._optimizations % self.graph_every:
             return
-        nodes = np.array([global_slam.global_node(j)[:2] for j in global_slam.node_order], np.float32).reshape(-1, 2)
-        loops, rejected = [], []
-        for r in global_slam.records:
-            if r["relative_pose"] is None:
-                continue
-            seg = (global_slam.global_node(r["from_scan"])[:2], global_slam.global_node(r["to_scan"])[:2])
-            (loops if r.get("in_final_graph") else rejected).append(seg)
-        intra = []
+        ids, poses = global_slam.graph.all_node_poses()
+        xy = poses[:, :2].astype(np.float32)
+
+        def at(scan_ids):
+            return xy[np.searchsorted(ids, np.asarray(scan_ids, dtype=np.int64))]
+
+        recs = [r for r in global_slam.records if r["relative_pose"] is not None]
+        final = np.array([bool(r.get("in_final_graph")) for r in recs], dtype=bool)
+        if recs:
+            segs = np.stack([at([r["from_scan"] for r in recs]), at([r["to_scan"] for r in recs])], axis=1)
+        else:
+            segs = np.zeros((0, 2, 2), np.float32)
+        a_list, n_list = [], []
         for k, m in global_slam.matchers.items():
-            a = global_slam.global_node(global_slam.submap_anchor[k])[:2]
-            intra.extend((a, global_slam.global_node(j)[:2]) for j in m.submap.node_indices if j in global_slam.nodes)
-        self.on_constraints(seq, nodes, np.array(intra).reshape(-1, 2, 2), np.array(loops).reshape(-1, 2, 2),
-                            np.array(rejected).reshape(-1, 2, 2))
+            js = [j for j in m.submap.node_indices if j in global_slam.nodes]
+            a_list.extend([global_slam.submap_anchor[k]] * len(js))
+            n_list.extend(js)
+        intra = np.stack([at(a_list), at(n_list)], axis=1) if n_list else np.zeros((0, 2, 2), np.float32)
+        self.on_constraints(seq, xy, intra, segs[final], segs[~final])
         rr.log("/events", rr.TextLog(f"pose graph optimized: {len(global_slam.graph.loops)} loop constraints, "
                                      f"error {before:.1f} -> {after:.1f}", level=rr.TextLogLevel.INFO))
 
