@@ -159,7 +159,7 @@ def cmd_run(args) -> int:
             from slam2d.io.results_mcap import write_results_mcap
 
             img, ox, oy = occupancy_image(grid, cfg.map.occupied_thresh, cfg.map.free_thresh)
-            write_results_mcap(out.staged("results.mcap"), _limited(_source(args), args.max_scans), result.poses,
+            write_results_mcap(out.staged("results.mcap"), _limited(src, args.max_scans), result.poses,
                                img, grid.resolution, (ox, oy))
         if viz is not None:
             viz.log_final(len(result.stamps) - 1, grid, result.poses, *_graph(tracker, result, global_slam),

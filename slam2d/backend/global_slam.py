@@ -84,10 +84,11 @@ class GlobalSlam:
         self.matchers[submap.index] = SubmapMatcher(submap, self.lc.branch_depth)
         # earlier nodes near the new submap (sampled), excluding those inside it
         inside = set(submap.node_indices)
+        first = min(inside, default=0)
         center = compose(self.global_submap(submap.index), between(submap.local_pose, np.r_[self.matchers[submap.index].center_local, 0.0]))
         cands = []
         for j in self.node_order[:: self.lc.sample_every_n_nodes]:
-            if j in inside or j >= min(inside, default=0):
+            if j in inside or j >= first:
                 continue
             d = np.hypot(*(self.global_node(j)[:2] - center[:2]))
             if d < self.lc.max_constraint_distance:

@@ -73,10 +73,6 @@ class PrecomputationStack:
             self.array[d] = sliding_max(grid.values, 1 << d, grid.unknown)
 
     @property
-    def levels(self):
-        return list(self.array)
-
-    @property
     def nbytes(self) -> int:
         return self.array.nbytes
 
