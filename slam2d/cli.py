@@ -146,9 +146,11 @@ def cmd_run(args) -> int:
             mapper = Mapper(cfg, tracker, viz, global_slam)
             result = mapper.run(_limited(src, args.max_scans), progress=bar, info={"input": args.input, "mode": mode})
         t_map = time.perf_counter()
-        node_poses = {n.scan_index: result.poses[n.scan_index] for n in result.nodes} if global_slam else None
-        grid = build_map(cfg, result.nodes, node_poses)
-        wall_map = time.perf_counter() - t_map
+        grid = result.map
+        if grid is None:
+            node_poses = {n.scan_index: result.poses[n.scan_index] for n in result.nodes} if global_slam else None
+            grid = build_map(cfg, result.nodes, node_poses)
+        wall_map = time.perf_counter() - t_map + result.timings.pop("map_build", {}).get("total_s", 0.0)
         out.write_trajectory("trajectory.txt", result.stamps, result.poses)
         out.write_map(grid, cfg)
         out.write_text("config.yaml", config_text(cfg))

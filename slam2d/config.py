@@ -105,6 +105,14 @@ class LoopClosureConfig(_Section):
     refine_rotation_weight: float = Field(1.0, ge=0.0, description="Refinement of loop matches: rotation weight (Cartographer: 1).")
 
 
+class FinalRefinementConfig(_Section):
+    """Global SLAM's last step: every scan is refined once more against the map of the optimized pose graph."""
+
+    enabled: bool = Field(True, description="After the final optimization, refine every scan's pose (continuous refinement only) against the map built from the optimized nodes.")
+    translation_weight: float = Field(3.0, ge=0.0, description="Weight pulling x/y toward the optimized pose.")
+    rotation_weight: float = Field(10.0, ge=0.0, description="Weight pulling theta toward the optimized pose.")
+
+
 class MapConfig(_Section):
     """The exported occupancy map (ROS map_server PGM + YAML, and PNG)."""
 
@@ -127,6 +135,7 @@ class SlamConfig(_Section):
     real_time_matcher: RealTimeMatcherConfig = Field(default_factory=RealTimeMatcherConfig, description="Local scan matching.")
     refine: RefineConfig = Field(default_factory=RefineConfig, description="Sub-cell refinement.")
     loop_closure: LoopClosureConfig = Field(default_factory=LoopClosureConfig, description="Global SLAM.")
+    final_refinement: FinalRefinementConfig = Field(default_factory=FinalRefinementConfig, description="Final trajectory refinement (global SLAM).")
     map: MapConfig = Field(default_factory=MapConfig, description="Exported map.")
 
     @field_validator("grid")

@@ -125,7 +125,7 @@ class LocalSlam:
         timings["total"] = (time.perf_counter() - t0) * 1e3
         return MatchingResult(scan.timestamp, pose, rd, inserted, score, timings,
                               active_submap=self.submaps.matching_submap, finished_submaps=finished,
-                              inserted_into=inserted_into, covariance=cov)
+                              inserted_into=inserted_into, covariance=cov, points=points)
 
     def all_submaps(self):
         return list(self.finished_submaps) + list(self.submaps.submaps)

@@ -34,6 +34,7 @@ class MatchingResult:
     finished_submaps: list = field(default_factory=list)  # submaps this insertion finished
     inserted_into: list = field(default_factory=list)     # (submap index, submap local pose) it went into
     covariance: np.ndarray | None = None  # of the local match (Olson 2009, Sec. IV)
+    points: np.ndarray | None = None      # the filtered points that were matched (tracking frame)
 
 
 class OdometryTracker:
@@ -76,6 +77,7 @@ class RunResult:
     counts: dict
     timings: dict
     ground_truth_ate: dict | None = None  # when the source carries ground truth (the simulator)
+    map: ProbabilityGrid | None = None    # built from the final node poses when the run built it already
 
 
 class Mapper:
@@ -94,6 +96,9 @@ class Mapper:
                   "timestamp_reversals": 0, "beams_min": None, "beams_max": None}
         stage_ms: dict[str, list[float]] = {}
         last_t = None
+        final = self.cfg.final_refinement
+        keep_points = self.global_slam is not None and final.enabled
+        scan_points: list[np.ndarray | None] = []
         self.observer.on_start(info or {})
         for scan in source:
             t0 = time.perf_counter()
@@ -117,6 +122,8 @@ class Mapper:
             ground_truth.append(scan.ground_truth)
             times.append(scan.timestamp)
             poses.append(res.local_pose)
+            if keep_points:
+                scan_points.append(None if res.points is None else res.points.astype(np.float32))
             if self.global_slam is not None:
                 t1 = time.perf_counter()
                 if res.inserted:
@@ -140,8 +147,19 @@ class Mapper:
             node_global = self.global_slam.finish()
             poses = globalize(poses, node_global)
             stage_ms["final_optimization"] = [(time.perf_counter() - t1) * 1e3]
+        grid = None
+        if keep_points:
+            from slam2d.backend.final_refinement import refine_trajectory
+
+            t1 = time.perf_counter()
+            grid = build_map(self.cfg, nodes, {n.scan_index: poses[n.scan_index] for n in nodes})
+            stage_ms["map_build"] = [(time.perf_counter() - t1) * 1e3]
+            t1 = time.perf_counter()
+            poses = refine_trajectory(grid, poses, scan_points, final.translation_weight, final.rotation_weight,
+                                      self.cfg.refine.max_iterations, self.cfg.refine.occupied_space_weight)
+            stage_ms["final_refinement"] = [(time.perf_counter() - t1) * 1e3]
         timings = {k: _percentiles(v) for k, v in stage_ms.items()}
-        result = RunResult(stamps, np.array(times), poses, nodes, counts, timings)
+        result = RunResult(stamps, np.array(times), poses, nodes, counts, timings, map=grid)
         if ground_truth and all(g is not None for g in ground_truth):
             from slam2d.eval.ate import ate
 

@@ -124,3 +124,29 @@ def test_branch_and_bound_equals_exhaustive_on_a_real_submap():
         # and the best pose is the node's own pose (within a cell and an angular step)
         best = initial + [dx * m.grid.resolution, dy * m.grid.resolution, params.angles[a]]
         assert np.hypot(*(best - results[j].local_pose)[:2]) <= 0.075
+
+
+def test_final_refinement_pulls_perturbed_scans_onto_the_map():
+    """Scans whose poses are a few cm / tenths of a degree off move back toward the truth; exact ones stay."""
+    from test_matchers import scan_points
+    from slam2d.backend.final_refinement import refine_trajectory
+    from slam2d.grid.probability_grid import ProbabilityGrid
+
+    rng = np.random.default_rng(11)
+    center = np.array([6.0, 1.25, 0.0])
+    truths = [center + [rng.uniform(-1, 1), rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3)] for _ in range(30)]
+    points = [scan_points(p, 0.01, rng) for p in truths]
+    grid = ProbabilityGrid(0.05)
+    for p, pts in zip(truths, points):
+        grid.insert(p[:2], compose(p, np.c_[pts, np.zeros(len(pts))])[:, :2])
+    truths = np.array(truths)
+    noisy = truths + np.c_[rng.uniform(-0.03, 0.03, (30, 2)), rng.uniform(-0.006, 0.006, 30)]
+    points_or_none = points[:-1] + [None]  # a scan without points keeps its pose
+    out = refine_trajectory(grid, noisy, points_or_none, translation_weight=1.0, rotation_weight=3.0)
+    before = np.hypot(*(noisy - truths)[:-1, :2].T)
+    after = np.hypot(*(out - truths)[:-1, :2].T)
+    assert after.mean() < 0.5 * before.mean()
+    assert np.abs(out - truths)[:-1, 2].mean() < np.abs(noisy - truths)[:-1, 2].mean()
+    np.testing.assert_allclose(out[-1], noisy[-1], atol=1e-12)
+    exact = refine_trajectory(grid, truths, points, 1.0, 3.0)
+    assert np.hypot(*(exact - truths)[:, :2].T).max() < 0.02
