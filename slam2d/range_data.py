@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from slam2d import _kernels
 from slam2d.config import RangeFilterConfig
 from slam2d.geometry import transform_points
 from slam2d.types import Scan
@@ -27,29 +28,21 @@ class RangeData:
 
 
 def range_data(scan: Scan, cfg: RangeFilterConfig) -> RangeData:
-    r = scan.ranges.astype(np.float64)
-    a = scan.angles
-    min_r = max(cfg.min_range, scan.range_min)
-    valid = scan.valid & (r >= min_r)
-    hit = valid & (r <= cfg.max_range)
-    far = valid & (r > cfg.max_range)
-    no_ret = scan.no_return if scan.no_return is not None else np.zeros_like(valid)
-    c, s = np.cos(a), np.sin(a)
-    hits = np.stack([r[hit] * c[hit], r[hit] * s[hit]], axis=1)
-    parts = [np.stack([cfg.max_range * c[far], cfg.max_range * s[far]], axis=1)]
-    if cfg.missing_data_ray_length > 0:
-        L = min(cfg.missing_data_ray_length, cfg.max_range)
-        parts.append(np.stack([L * c[no_ret], L * s[no_ret]], axis=1))
-    misses = np.vstack(parts)
+    n = scan.num_beams
+    hits = np.empty((n, 2))
+    misses = np.empty((n, 2))
+    no_ret = scan.no_return if scan.no_return is not None else np.zeros(n, dtype=np.bool_)
     off = scan.laser_offset
-    return RangeData(np.array(off[:2], dtype=float), transform_points(off, hits), transform_points(off, misses))
+    miss_len = min(cfg.missing_data_ray_length, cfg.max_range) if cfg.missing_data_ray_length > 0 else 0.0
+    nh, nm = _kernels.scan_to_range_data(scan.ranges, scan.valid, no_ret, float(scan.angle_min),
+                                         float(scan.angle_increment), float(max(cfg.min_range, scan.range_min)),
+                                         float(cfg.max_range), float(miss_len), float(off[0]), float(off[1]),
+                                         float(off[2]), hits, misses)
+    return RangeData(np.array([float(off[0]), float(off[1])]), hits[:nh], misses[:nm])
 
 
 def voxel_filter(points: np.ndarray, size: float) -> np.ndarray:
     """One point per square cell of ``size`` (the first in input order), like Cartographer's voxel filter."""
     if size <= 0 or len(points) == 0:
         return points
-    k = np.floor(points / size).astype(np.int64)
-    keys = (k[:, 0] << 32) ^ (k[:, 1] & 0xFFFFFFFF)
-    _, idx = np.unique(keys, return_index=True)
-    return points[np.sort(idx)]
+    return points[_kernels.voxel_filter_indices(points, float(size))]

@@ -117,3 +117,31 @@ def test_branch_and_bound_equals_exhaustive(seed, depth):
     assert ex[a, dy + w, dx + w] == pytest.approx(s, rel=1e-6)
     # above the best score nothing is found
     assert branch_and_bound(stack, cells, w, float(ex.max()) + 1e-6, pen, params.angles) is None
+
+
+def covariance_oracle(scores, offs, th, n_points):
+    weights = np.exp(np.clip(n_points * (scores.astype(np.float64) - scores.max()), -50.0, 0.0))
+    tot = weights.sum()
+    dx = offs[None, None, :]
+    dy = offs[None, :, None]
+    dt = th[:, None, None]
+    comps = [c * np.ones_like(weights) for c in (dx, dy, dt)]
+    means = [(weights * c).sum() / tot for c in comps]
+    cov = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            cov[i, j] = (weights * (comps[i] - means[i]) * (comps[j] - means[j])).sum() / tot
+    return cov
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_score_covariance_matches_oracle(seed):
+    rng = np.random.default_rng(seed)
+    scores = rng.uniform(0.5, 0.9, (7, 9, 9)).astype(np.float32)
+    scores[3, 4, 6] = 0.95
+    offs = np.arange(-4, 5) * 0.05
+    th = np.linspace(-0.03, 0.03, 7)
+    out = np.empty((3, 3))
+    _kernels.score_covariance(scores, offs, th, 40.0, out)
+    np.testing.assert_allclose(out, covariance_oracle(scores, offs, th, 40.0), rtol=1e-6, atol=1e-12)
+    assert np.all(np.linalg.eigvalsh(out) > 0)

@@ -10,7 +10,7 @@ import math
 from numba import njit
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _apply(logodds, prob, stamp, r, c, scan_id, delta, lo_min, lo_max):
     if stamp[r, c] == scan_id:
         return False
@@ -28,7 +28,7 @@ def _apply(logodds, prob, stamp, r, c, scan_id, delta, lo_min, lo_max):
     return (old > 0.0) != (v > 0.0)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def insert_rays(logodds, prob, stamp, scan_id, ox, oy, ends, is_hit, hit_delta, miss_delta, lo_min, lo_max,
                 flips, n_flips):
     """Insert rays from (ox, oy) to ``ends`` (M, 2), all in cell units (continuous, lower-left origin).
@@ -39,6 +39,7 @@ def insert_rays(logodds, prob, stamp, scan_id, ox, oy, ends, is_hit, hit_delta, 
     cross between occupied (log-odds > 0) and not are written to ``flips`` (their count to
     ``n_flips[0]``, which may exceed the buffer: then the caller recomputes what depends on it). Rays whose
     ``is_hit`` is False mark free space along the whole ray, the end cell included.
+    Cells outside the grid are skipped.
     """
     rows, cols = logodds.shape
     m = ends.shape[0]
@@ -54,18 +55,20 @@ def insert_rays(logodds, prob, stamp, scan_id, ox, oy, ends, is_hit, hit_delta, 
                         flips[nf, 0] = r
                         flips[nf, 1] = c
                     nf += 1
+    cx0 = int(math.floor(ox))
+    cy0 = int(math.floor(oy))
+    inf = 1e30
     for i in range(m):
         ex = ends[i, 0]
         ey = ends[i, 1]
-        cx = int(math.floor(ox))
-        cy = int(math.floor(oy))
+        cx = cx0
+        cy = cy0
         tx = int(math.floor(ex))
         ty = int(math.floor(ey))
         dx = ex - ox
         dy = ey - oy
         step_x = 1 if dx > 0 else -1
         step_y = 1 if dy > 0 else -1
-        inf = 1e30
         if dx != 0.0:
             t_max_x = ((cx + (1 if dx > 0 else 0)) - ox) / dx
             t_delta_x = abs(1.0 / dx)
@@ -78,32 +81,41 @@ def insert_rays(logodds, prob, stamp, scan_id, ox, oy, ends, is_hit, hit_delta, 
         else:
             t_max_y = inf
             t_delta_y = inf
+        # the cells before the end cell: a grid traversal visits exactly |Δcol| + |Δrow| of them
         n_steps = abs(tx - cx) + abs(ty - cy)
-        for _ in range(n_steps + 1):
-            if cx == tx and cy == ty:
-                if not is_hit[i] and 0 <= cy < rows and 0 <= cx < cols:
-                    if _apply(logodds, prob, stamp, cy, cx, scan_id, miss_delta, lo_min, lo_max):
+        for _ in range(n_steps):
+            if 0 <= cy < rows and 0 <= cx < cols and stamp[cy, cx] != scan_id:
+                stamp[cy, cx] = scan_id  # a cell is known once any scan updated it
+                old = logodds[cy, cx]
+                v = old + miss_delta
+                if v < lo_min:
+                    v = lo_min
+                elif v > lo_max:
+                    v = lo_max
+                if v != old:  # most misses land on cells already at the clamp
+                    logodds[cy, cx] = v
+                    prob[cy, cx] = 1.0 / (1.0 + math.exp(-v))
+                    if (old > 0.0) != (v > 0.0):
                         if nf < cap:
                             flips[nf, 0] = cy
                             flips[nf, 1] = cx
                         nf += 1
-                break
-            if 0 <= cy < rows and 0 <= cx < cols:
-                if _apply(logodds, prob, stamp, cy, cx, scan_id, miss_delta, lo_min, lo_max):
-                    if nf < cap:
-                        flips[nf, 0] = cy
-                        flips[nf, 1] = cx
-                    nf += 1
             if t_max_x < t_max_y:
                 t_max_x += t_delta_x
                 cx += step_x
             else:
                 t_max_y += t_delta_y
                 cy += step_y
+        if not is_hit[i] and 0 <= ty < rows and 0 <= tx < cols:
+            if _apply(logodds, prob, stamp, ty, tx, scan_id, miss_delta, lo_min, lo_max):
+                if nf < cap:
+                    flips[nf, 0] = ty
+                    flips[nf, 1] = tx
+                nf += 1
     n_flips[0] = nf
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def logodds_to_probability(logodds, known, unknown_value, out):
     rows, cols = logodds.shape
     for r in range(rows):
@@ -115,7 +127,7 @@ def logodds_to_probability(logodds, known, unknown_value, out):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def stamp_field(field, logodds, flips, n, kernel, radius):
     """Update a likelihood field after occupancy flips, exactly.
 

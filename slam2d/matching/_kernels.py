@@ -12,7 +12,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def rotated_cells(points, x, y, theta0, angles, ox, oy, inv_res):
     """Cells (A, N, 2) as [col, row] of ``points`` (N, 2) rotated by theta0 + angles[a] and moved to (x, y)."""
     a_n = angles.shape[0]
@@ -29,7 +29,7 @@ def rotated_cells(points, x, y, theta0, angles, ox, oy, inv_res):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def score_window(values, cells, w, unknown):
     """Mean grid value for every angle and integer offset in [-w, w]²: scores[a, dy + w, dx + w]."""
     rows, cols = values.shape
@@ -41,6 +41,13 @@ def score_window(values, cells, w, unknown):
         for i in range(n):
             c0 = cells[a, i, 0] - w
             r0 = cells[a, i, 1] - w
+            if r0 >= 0 and c0 >= 0 and r0 + k <= rows and c0 + k <= cols:
+                for dy in range(k):  # the whole window lies inside: branch-free rows
+                    row = values[r0 + dy]
+                    arow = acc[dy]
+                    for dx in range(k):
+                        arow[dx] += row[c0 + dx]
+                continue
             for dy in range(k):
                 r = r0 + dy
                 if r < 0 or r >= rows:
@@ -59,7 +66,7 @@ def score_window(values, cells, w, unknown):
     return out
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _level_score(level, cells, a, dx, dy, unknown):
     rows, cols = level.shape
     n = cells.shape[1]
@@ -74,7 +81,7 @@ def _level_score(level, cells, a, dx, dy, unknown):
     return s / n
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def score_candidates(values, cells, cands, unknown):
     """Mean grid value for candidates (K, 3) = [angle index, dx, dy] (integer cells)."""
     k_n = cands.shape[0]
@@ -84,7 +91,7 @@ def score_candidates(values, cells, cands, unknown):
     return out
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _w(t):
     t2 = t * t
     t3 = t2 * t
@@ -92,14 +99,14 @@ def _w(t):
             0.5 * (-3.0 * t3 + 4.0 * t2 + t), 0.5 * (t3 - t2))
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _dw(t):
     t2 = t * t
     return (0.5 * (-3.0 * t2 + 4.0 * t - 1.0), 0.5 * (9.0 * t2 - 10.0 * t),
             0.5 * (-9.0 * t2 + 8.0 * t + 1.0), 0.5 * (3.0 * t2 - 2.0 * t))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _bicubic(values, u, v, unknown):
     rows, cols = values.shape
     uu = u - 0.5
@@ -134,7 +141,7 @@ def _bicubic(values, u, v, unknown):
     return f, fu, fv
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def bicubic(values, u, v, unknown, out):
     """Catmull-Rom bicubic value and gradient at continuous cell coordinates (u = x, v = y; cell centres at +0.5).
 
@@ -146,7 +153,7 @@ def bicubic(values, u, v, unknown, out):
     out[2] = fv
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _cost(values, ox, oy, res, unknown, points, x, y, t, x0, y0, t0, scale, w_t, w_r):
     c = math.cos(t)
     s = math.sin(t)
@@ -160,77 +167,95 @@ def _cost(values, ox, oy, res, unknown, points, x, y, t, x0, y0, t0, scale, w_t,
     return tot + (w_t * (x - x0)) ** 2 + (w_t * (y - y0)) ** 2 + (w_r * (t - t0)) ** 2
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
+def _normal_equations(values, ox, oy, res, unknown, points, x, y, t, x0, y0, t0, scale, w_t, w_r, h, g):
+    """Cost at (x, y, t), and the Gauss-Newton Hessian ``h`` and gradient ``g`` there (one pass over the points)."""
+    c = math.cos(t)
+    s = math.sin(t)
+    h[:, :] = 0.0
+    g[:] = 0.0
+    tot = 0.0
+    for i in range(points.shape[0]):
+        px0 = points[i, 0]
+        py0 = points[i, 1]
+        px = x + c * px0 - s * py0
+        py = y + s * px0 + c * py0
+        f, fu, fv = _bicubic(values, (px - ox) / res, (py - oy) / res, unknown)
+        r = scale * (1.0 - f)
+        tot += r * r
+        j0 = -scale * fu / res
+        j1 = -scale * fv / res
+        j2 = j0 * (-s * px0 - c * py0) + j1 * (c * px0 - s * py0)
+        g[0] += j0 * r
+        g[1] += j1 * r
+        g[2] += j2 * r
+        h[0, 0] += j0 * j0
+        h[0, 1] += j0 * j1
+        h[0, 2] += j0 * j2
+        h[1, 1] += j1 * j1
+        h[1, 2] += j1 * j2
+        h[2, 2] += j2 * j2
+    h[1, 0] = h[0, 1]
+    h[2, 0] = h[0, 2]
+    h[2, 1] = h[1, 2]
+    h[0, 0] += w_t * w_t
+    h[1, 1] += w_t * w_t
+    h[2, 2] += w_r * w_r
+    g[0] += w_t * w_t * (x - x0)
+    g[1] += w_t * w_t * (y - y0)
+    g[2] += w_r * w_r * (t - t0)
+    return tot + (w_t * (x - x0)) ** 2 + (w_t * (y - y0)) ** 2 + (w_r * (t - t0)) ** 2
+
+
+#: refinement stops when a step lowers the cost by less than this fraction (Ceres' function_tolerance)
+FUNCTION_TOLERANCE = 1e-6
+
+
+@njit(cache=True, nogil=True)
 def refine_pose(values, ox, oy, res, unknown, points, x0, y0, t0, w_occ, w_t, w_r, max_iter):
     """Levenberg-Marquardt on Σ (w_occ/√N · (1 − P(T p)))² + w_t²|t − t0|² + w_r²(θ − θ0)².
 
-    Cartographer's Ceres scan matcher cost on a bicubic-interpolated probability grid.
-    Returns (x, y, theta, final cost, iterations).
+    Cartographer's Ceres scan matcher cost on a bicubic-interpolated probability grid. Each
+    iteration is one pass over the points: the trial pose's cost comes with its normal
+    equations, which the next step uses when the trial is accepted. Stops on Ceres' default
+    rules (relative cost decrease below 1e-6, or a negligible step) or after ``max_iter``
+    trials. Returns (x, y, theta, final cost, iterations).
     """
     n = points.shape[0]
     scale = w_occ / math.sqrt(max(n, 1))
     x, y, t = x0, y0, t0
     lam = 1e-3
-    cost = _cost(values, ox, oy, res, unknown, points, x, y, t, x0, y0, t0, scale, w_t, w_r)
-    it = 0
     h = np.zeros((3, 3))
     g = np.zeros(3)
+    hn = np.zeros((3, 3))
+    gn = np.zeros(3)
+    hd = np.zeros((3, 3))
+    cost = _normal_equations(values, ox, oy, res, unknown, points, x, y, t, x0, y0, t0, scale, w_t, w_r, h, g)
+    it = 0
     for it in range(max_iter):
-        c = math.cos(t)
-        s = math.sin(t)
-        h[:, :] = 0.0
-        g[:] = 0.0
-        for i in range(n):
-            px0 = points[i, 0]
-            py0 = points[i, 1]
-            px = x + c * px0 - s * py0
-            py = y + s * px0 + c * py0
-            f, fu, fv = _bicubic(values, (px - ox) / res, (py - oy) / res, unknown)
-            r = scale * (1.0 - f)
-            j0 = -scale * fu / res
-            j1 = -scale * fv / res
-            j2 = j0 * (-s * px0 - c * py0) + j1 * (c * px0 - s * py0)
-            g[0] += j0 * r
-            g[1] += j1 * r
-            g[2] += j2 * r
-            h[0, 0] += j0 * j0
-            h[0, 1] += j0 * j1
-            h[0, 2] += j0 * j2
-            h[1, 1] += j1 * j1
-            h[1, 2] += j1 * j2
-            h[2, 2] += j2 * j2
-        h[1, 0] = h[0, 1]
-        h[2, 0] = h[0, 2]
-        h[2, 1] = h[1, 2]
-        h[0, 0] += w_t * w_t
-        h[1, 1] += w_t * w_t
-        h[2, 2] += w_r * w_r
-        g[0] += w_t * w_t * (x - x0)
-        g[1] += w_t * w_t * (y - y0)
-        g[2] += w_r * w_r * (t - t0)
-        improved = False
-        step = 0.0
-        for _ in range(10):
-            hd = h.copy()
-            for a in range(3):
-                hd[a, a] += lam * (h[a, a] + 1e-9)
-            d = np.linalg.solve(hd, -g)
-            nx, ny, nt = x + d[0], y + d[1], t + d[2]
-            nc = _cost(values, ox, oy, res, unknown, points, nx, ny, nt, x0, y0, t0, scale, w_t, w_r)
-            if nc < cost:
-                x, y, t = nx, ny, nt
-                step = abs(d[0]) + abs(d[1]) + abs(d[2])
-                cost = nc
-                lam = max(lam * 0.3, 1e-7)
-                improved = True
+        hd[:, :] = h
+        for a in range(3):
+            hd[a, a] += lam * (h[a, a] + 1e-9)
+        d = np.linalg.solve(hd, -g)
+        nx, ny, nt = x + d[0], y + d[1], t + d[2]
+        nc = _normal_equations(values, ox, oy, res, unknown, points, nx, ny, nt, x0, y0, t0, scale, w_t, w_r, hn, gn)
+        if nc < cost:
+            decrease = cost - nc
+            x, y, t = nx, ny, nt
+            cost = nc
+            h[:, :] = hn
+            g[:] = gn
+            lam = max(lam * 0.3, 1e-7)
+            if abs(d[0]) + abs(d[1]) + abs(d[2]) < 1e-6 or decrease <= FUNCTION_TOLERANCE * (cost + decrease):
                 break
+        else:
             lam *= 10.0
-        if not improved or step < 1e-6:
-            break
+            if lam > 1e6:
+                break
     return x, y, t, cost, it + 1
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _penalty(w_t, w_r, res, angle, x, y, width):
     if w_t == 0.0 and w_r == 0.0:
         return 1.0
@@ -243,7 +268,7 @@ def _penalty(w_t, w_r, res, angle, x, y, width):
     return math.exp(-v * v)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def branch_and_bound(levels, cells, angles, w, min_score, unknown, w_t, w_r, res):
     """Depth-first branch-and-bound (Hess et al. 2016, Algorithm 3) with an explicit stack.
 
@@ -330,3 +355,59 @@ def branch_and_bound(levels, cells, angles, w, min_score, unknown, w_t, w_r, res
                 sp += 1
             ks[lo] = np.inf
     return ba, bx, by, best
+
+
+@njit(cache=True, nogil=True)
+def score_covariance(scores, offsets, angles, n_points, out):
+    """Covariance of (x, y, θ) over a score volume ``scores[angle, y, x]`` (Olson 2009, Sec. IV).
+
+    Candidate weights are exp(N·(s − s_best)) (exponent clipped at −50); ``offsets`` are the
+    metric x/y offsets of the lattice columns/rows. Writes the 3×3 moment matrix into ``out``
+    (no floor added).
+    """
+    na, ny, nx = scores.shape
+    best = -1e300
+    for a in range(na):
+        for iy in range(ny):
+            for ix in range(nx):
+                if scores[a, iy, ix] > best:
+                    best = scores[a, iy, ix]
+    s0 = 0.0
+    sx = 0.0
+    sy = 0.0
+    st = 0.0
+    sxx = 0.0
+    syy = 0.0
+    stt = 0.0
+    sxy = 0.0
+    sxt = 0.0
+    syt = 0.0
+    for a in range(na):
+        th = angles[a]
+        for iy in range(ny):
+            y = offsets[iy]
+            for ix in range(nx):
+                e = n_points * (float(scores[a, iy, ix]) - best)
+                if e < -50.0:
+                    e = -50.0
+                w = math.exp(e)
+                x = offsets[ix]
+                s0 += w
+                sx += w * x
+                sy += w * y
+                st += w * th
+                sxx += w * x * x
+                syy += w * y * y
+                stt += w * th * th
+                sxy += w * x * y
+                sxt += w * x * th
+                syt += w * y * th
+    mx = sx / s0
+    my = sy / s0
+    mt = st / s0
+    out[0, 0] = sxx / s0 - mx * mx
+    out[1, 1] = syy / s0 - my * my
+    out[2, 2] = stt / s0 - mt * mt
+    out[0, 1] = out[1, 0] = sxy / s0 - mx * my
+    out[0, 2] = out[2, 0] = sxt / s0 - mx * mt
+    out[1, 2] = out[2, 1] = syt / s0 - my * mt

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from slam2d.matching import _kernels
 from slam2d.matching.search import (DeltaPenalty, MatchGrid, PrecomputationStack, SearchParameters, branch_and_bound,
                                    exhaustive)
 
@@ -109,25 +110,11 @@ def _margin(scores, a, iy, ix, lin=2, ang=2) -> float:
 
 
 def _covariance(scores, params: SearchParameters, n_points: int) -> np.ndarray:
-    w = params.linear_cells
+    """Olson's covariance of the score distribution plus the lattice's own quantization (step²/12)."""
     res = params.resolution
-    best = float(scores.max())
-    weights = np.exp(np.clip(n_points * (scores.astype(np.float64) - best), -50.0, 0.0))
-    tot = weights.sum()
-    offs = (np.arange(-w, w + 1) * res)
-    th = params.angles
-    wa = weights.sum(axis=(1, 2))
-    wy = weights.sum(axis=(0, 2))
-    wx = weights.sum(axis=(0, 1))
-    mx, my, mt = (wx @ offs) / tot, (wy @ offs) / tot, (wa @ th) / tot
-    dx = offs[None, None, :] - mx
-    dy = offs[None, :, None] - my
-    dt = th[:, None, None] - mt
+    offs = np.arange(-params.linear_cells, params.linear_cells + 1) * res
     cov = np.empty((3, 3))
-    comps = (dx, dy, dt)
-    for i in range(3):
-        for j in range(i, 3):
-            cov[i, j] = cov[j, i] = float((weights * comps[i] * comps[j]).sum() / tot)
+    _kernels.score_covariance(scores, offs, np.asarray(params.angles, dtype=np.float64), float(n_points), cov)
     floor = np.array([res * res / 12.0, res * res / 12.0, params.angular_step ** 2 / 12.0])
     cov[np.diag_indices(3)] += floor
     return cov

@@ -1,0 +1,76 @@
+"""Numba kernels of the per-scan range data (Cartographer's ``RangeData`` and ``VoxelFilter``).
+
+Plain-numpy oracles of both live in ``tests/test_range_data.py``.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, nogil=True)
+def scan_to_range_data(ranges, valid, no_return, angle_min, angle_increment, min_range, max_range, miss_length,
+                       ox, oy, oth, hits, misses):
+    """Hits and free-space ray ends of one scan in the tracking frame (laser mount ``ox, oy, oth``).
+
+    Valid readings within [min_range, max_range] are hits; valid readings beyond max_range
+    become misses cut at max_range; no-return beams become misses of ``miss_length`` (none
+    when it is 0). Writes into ``hits`` / ``misses`` (capacity = beam count each) and
+    returns (number of hits, number of misses); misses come far ones first, then no-returns,
+    each in beam order.
+    """
+    n = ranges.shape[0]
+    c0 = math.cos(oth)
+    s0 = math.sin(oth)
+    nh = 0
+    nm = 0
+    for i in range(n):
+        r = float(ranges[i])
+        if valid[i] and r >= min_range:
+            a = angle_min + angle_increment * i
+            if r <= max_range:
+                px = r * math.cos(a)
+                py = r * math.sin(a)
+                hits[nh, 0] = ox + c0 * px - s0 * py
+                hits[nh, 1] = oy + s0 * px + c0 * py
+                nh += 1
+    for i in range(n):
+        r = float(ranges[i])
+        if valid[i] and r >= min_range and r > max_range:
+            a = angle_min + angle_increment * i
+            px = max_range * math.cos(a)
+            py = max_range * math.sin(a)
+            misses[nm, 0] = ox + c0 * px - s0 * py
+            misses[nm, 1] = oy + s0 * px + c0 * py
+            nm += 1
+    if miss_length > 0.0:
+        for i in range(n):
+            if no_return[i]:
+                a = angle_min + angle_increment * i
+                px = miss_length * math.cos(a)
+                py = miss_length * math.sin(a)
+                misses[nm, 0] = ox + c0 * px - s0 * py
+                misses[nm, 1] = oy + s0 * px + c0 * py
+                nm += 1
+    return nh, nm
+
+
+@njit(cache=True, nogil=True)
+def voxel_filter_indices(points, size):
+    """Indices of the first point (in input order) of every occupied ``size`` × ``size`` cell, increasing."""
+    n = points.shape[0]
+    keys = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        kx = np.int64(math.floor(points[i, 0] / size))
+        ky = np.int64(math.floor(points[i, 1] / size))
+        keys[i] = (kx << 32) ^ (ky & 0xFFFFFFFF)
+    order = np.argsort(keys, kind="mergesort")  # stable: the first point of a cell comes first
+    keep = np.empty(n, dtype=np.int64)
+    m = 0
+    for j in range(n):
+        if j == 0 or keys[order[j]] != keys[order[j - 1]]:
+            keep[m] = order[j]
+            m += 1
+    return np.sort(keep[:m])

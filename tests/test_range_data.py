@@ -1,0 +1,68 @@
+"""Range data and voxel filter kernels against plain-numpy oracles."""
+import numpy as np
+import pytest
+
+from slam2d.config import RangeFilterConfig
+from slam2d.geometry import transform_points
+from slam2d.range_data import range_data, voxel_filter
+from slam2d.types import Scan
+
+
+def range_data_oracle(scan: Scan, cfg: RangeFilterConfig):
+    r = scan.ranges.astype(np.float64)
+    a = scan.angles
+    valid = scan.valid & (r >= max(cfg.min_range, scan.range_min))
+    hit = valid & (r <= cfg.max_range)
+    far = valid & (r > cfg.max_range)
+    c, s = np.cos(a), np.sin(a)
+    hits = np.stack([r[hit] * c[hit], r[hit] * s[hit]], axis=1)
+    parts = [np.stack([cfg.max_range * c[far], cfg.max_range * s[far]], axis=1)]
+    if cfg.missing_data_ray_length > 0:
+        length = min(cfg.missing_data_ray_length, cfg.max_range)
+        parts.append(np.stack([length * c[scan.no_return], length * s[scan.no_return]], axis=1))
+    off = scan.laser_offset
+    return transform_points(off, hits), transform_points(off, np.vstack(parts))
+
+
+def voxel_oracle(points, size):
+    seen, keep = set(), []
+    for i, p in enumerate(points):
+        key = tuple(np.floor(p / size).astype(int))
+        if key not in seen:
+            seen.add(key)
+            keep.append(i)
+    return points[keep]
+
+
+def random_scan(rng, n=181):
+    ranges = rng.uniform(0.0, 40.0, n).astype(np.float32)
+    no_return = rng.random(n) < 0.1
+    ranges[no_return] = 50.0
+    valid = ~no_return & (rng.random(n) < 0.95)
+    return Scan(0.0, ranges, -np.pi / 2, np.pi / (n - 1), 0.1, 50.0, valid, no_return=no_return,
+                laser_offset=np.array([0.2, -0.05, rng.uniform(-0.3, 0.3)]))
+
+
+@pytest.mark.parametrize("seed", range(5))
+@pytest.mark.parametrize("miss", [0.0, 5.0])
+def test_range_data_matches_oracle(seed, miss):
+    rng = np.random.default_rng(seed)
+    scan = random_scan(rng)
+    cfg = RangeFilterConfig(min_range=0.5, max_range=30.0, missing_data_ray_length=miss)
+    rd = range_data(scan, cfg)
+    hits, misses = range_data_oracle(scan, cfg)
+    assert len(rd.hits) > 100 and len(rd.misses) > (10 if miss else 0)
+    np.testing.assert_allclose(rd.hits, hits, atol=1e-12)
+    np.testing.assert_allclose(rd.misses, misses, atol=1e-12)
+    np.testing.assert_allclose(rd.origin, scan.laser_offset[:2])
+
+
+@pytest.mark.parametrize("size", [0.025, 0.1, 1.0])
+def test_voxel_filter_matches_oracle(size):
+    rng = np.random.default_rng(7)
+    pts = rng.normal(0, 2.0, (500, 2))
+    pts[250:] = pts[:250] + rng.normal(0, 0.01, (250, 2))  # near-duplicates share cells
+    got = voxel_filter(pts, size)
+    want = voxel_oracle(pts, size)
+    np.testing.assert_array_equal(got, want)
+    assert len(got) < len(pts) or size < 0.05
