@@ -44,6 +44,27 @@ def test_flaser_beam_conventions(n, step_deg):
     assert math.degrees(da) == pytest.approx(step_deg)
 
 
+def test_records_spilled_to_disk_read_back_the_same(tmp_path, flaser_line, monkeypatch):
+    """Past the memory budget the first pass's records go to a temporary file; the scans are the same."""
+    import slam2d.io.carmen as carmen
+
+    rng = np.random.default_rng(1)
+    text = "".join(flaser_line(list(rng.uniform(0.5, 9.0, 8).round(3)), pose=(0.1 * i, 0.0, 0.0),
+                               odom=(0.1 * i, 0.0, 0.0), ts=f"{100 + i}.5") for i in range(40))
+    path = write(tmp_path, text)
+    in_memory = list(CarmenLog(path))
+    monkeypatch.setattr(carmen, "RECORD_MEMORY_BUDGET", 2000)  # spills after a few records
+    log = CarmenLog(path)
+    spilled = list(log)
+    assert log._spool.file is not None and log._spool.records == []
+    assert len(spilled) == len(in_memory) == 40
+    for a, b in zip(in_memory, spilled):
+        np.testing.assert_array_equal(a.ranges, b.ranges)
+        np.testing.assert_array_equal(a.odom_pose, b.odom_pose)
+        assert a.timestamp_text == b.timestamp_text and a.index == b.index
+    assert len(list(log)) == 40  # the second pass can run again
+
+
 def test_robotlaser1(tmp_path):
     n = 5
     ranges = " ".join(["1.0", "2.0", "30.0", "4.0", "5.0"])

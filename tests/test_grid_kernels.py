@@ -108,3 +108,32 @@ def test_field_kernel_oracle():
     for (i, j), v in np.ndenumerate(k):
         d = math.hypot(i - 6, j - 6) * 0.05
         assert v == pytest.approx(math.exp(-d * d / 0.02) if d <= 0.3 + 1e-9 else 0.0, abs=1e-7)
+
+
+@pytest.mark.parametrize("sigma", [None, 0.1])
+def test_two_grids_in_parallel_equal_one_at_a_time(sigma):
+    """The active submaps are updated by one parallel kernel; the result must equal separate inserts."""
+    from slam2d.grid.probability_grid import insert_scan
+
+    rng = np.random.default_rng(3)
+    angles = np.linspace(-np.pi / 2, np.pi / 2, 180)
+    pair = [ProbabilityGrid(0.05, field_sigma=sigma) for _ in range(2)]
+    single = [ProbabilityGrid(0.05, field_sigma=sigma) for _ in range(2)]
+    for i in range(12):
+        r = rng.uniform(0.5, 6.0, 180)
+        d = rng.normal(0, 0.3, 2)
+        hits = np.c_[r * np.cos(angles), r * np.sin(angles)] + d
+        misses = hits[::20] * 1.5
+        grids = pair if i < 4 else pair[1:]  # the first grid stops taking scans, like a finished submap
+        insert_scan(grids + ([ProbabilityGrid(0.05, field_sigma=sigma)] if i >= 8 else []), d, hits, misses)
+        for g in (single if i < 4 else single[1:]):
+            g.insert(d, hits, misses)
+    for a, b in zip(pair, single):
+        assert a.shape == b.shape and np.array_equal(a.origin, b.origin)
+        np.testing.assert_array_equal(a.logodds, b.logodds)
+        np.testing.assert_array_equal(a.prob, b.prob)
+        np.testing.assert_array_equal(a.stamp > 0, b.stamp > 0)
+        if sigma:
+            np.testing.assert_array_equal(a.field, b.field)
+            np.testing.assert_allclose(a.field, a.compute_field(), atol=1e-6)
+            assert a.field.max() == 1.0

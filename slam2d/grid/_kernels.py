@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 
-from numba import njit
+from numba import njit, prange
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -189,3 +189,28 @@ def stamp_field(field, logodds, flips, n, kernel, radius):
             for cc in range(max(c - radius, 0), min(c + radius + 1, cols)):
                 if field[rr, cc] < -0.5:
                     field[rr, cc] += 2.0
+
+
+@njit(cache=True, nogil=True)
+def _insert_and_stamp(logodds, prob, stamp, scan_id, ox, oy, ends, is_hit, hit_delta, miss_delta, lo_min, lo_max,
+                      flips, n_flips, field, kernel, radius, with_field):
+    insert_rays(logodds, prob, stamp, scan_id, ox, oy, ends, is_hit, hit_delta, miss_delta, lo_min, lo_max, flips, n_flips)
+    if with_field and n_flips[0] <= flips.shape[0]:
+        stamp_field(field, logodds, flips, n_flips[0], kernel, radius)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def insert_rays_pair(lo_a, prob_a, stamp_a, id_a, ox_a, oy_a, ends_a, flips_a, n_flips_a, field_a,
+                     lo_b, prob_b, stamp_b, id_b, ox_b, oy_b, ends_b, flips_b, n_flips_b, field_b,
+                     is_hit, hit_delta, miss_delta, lo_min, lo_max, kernel, radius, with_field):
+    """``insert_rays`` (then ``stamp_field`` when ``with_field``) into two grids at once, one per
+    thread: the two active submaps take every scan. A grid whose flips overflowed its buffer
+    is left for the caller to recompute its field. (Each thread's work sits in its own
+    function so that numba's parallel loop cannot hoist the flip count above the insertion.)"""
+    for g in prange(2):
+        if g == 0:
+            _insert_and_stamp(lo_a, prob_a, stamp_a, id_a, ox_a, oy_a, ends_a, is_hit, hit_delta, miss_delta, lo_min,
+                              lo_max, flips_a, n_flips_a, field_a, kernel, radius, with_field)
+        else:
+            _insert_and_stamp(lo_b, prob_b, stamp_b, id_b, ox_b, oy_b, ends_b, is_hit, hit_delta, miss_delta, lo_min,
+                              lo_max, flips_b, n_flips_b, field_b, kernel, radius, with_field)

@@ -125,27 +125,24 @@ class ProbabilityGrid:
 
     def insert(self, origin_xy, hits: np.ndarray, misses: np.ndarray | None = None):
         """Insert one scan: rays from ``origin_xy`` to hit points (N, 2) and to free-space ray ends (M, 2), grid frame."""
-        ends = hits if misses is None or len(misses) == 0 else np.vstack([hits, misses])
-        if len(ends) == 0:
-            return
-        pts = np.vstack([ends, np.asarray(origin_xy, dtype=float)[None, :]])
-        self.ensure_contains(pts[:, 0].min(), pts[:, 1].min(), pts[:, 0].max(), pts[:, 1].max())
-        is_hit = np.zeros(len(ends), dtype=np.bool_)
-        is_hit[: len(hits)] = True
-        cells = (ends - self.origin) / self.resolution
-        o = (np.asarray(origin_xy, dtype=float) - self.origin) / self.resolution
+        insert_scan([self], origin_xy, hits, misses)
+
+    def _prepare(self, ends: np.ndarray, origin: np.ndarray, lo: np.ndarray, hi: np.ndarray):
+        """Grow to fit, advance the scan id; (ray ends in cells, origin in cells, flips buffer, flip count)."""
+        self.ensure_contains(lo[0], lo[1], hi[0], hi[1])
         self.scan_id += 1
-        flips = np.empty((4 * len(ends) + 256, 2), dtype=np.int32)
-        n_flips = np.zeros(1, dtype=np.int64)
-        _kernels.insert_rays(self.logodds, self.prob, self.stamp, self.scan_id, float(o[0]), float(o[1]),
-                             np.ascontiguousarray(cells), is_hit, self.hit_delta, self.miss_delta,
-                             self.lo_min, self.lo_max, flips, n_flips)
-        if self.field_sigma:
-            n = int(n_flips[0])
-            if n > len(flips):
-                self.field = self.compute_field()
-            else:
-                _kernels.stamp_field(self.field, self.logodds, flips, n, self.field_kernel, self.field_radius)
+        cells = np.ascontiguousarray((ends - self.origin) / self.resolution)
+        o = (origin - self.origin) / self.resolution
+        return cells, o, np.empty((4 * len(ends) + 256, 2), dtype=np.int32), np.zeros(1, dtype=np.int64)
+
+    def _field_after(self, flips, n_flips, stamped: bool):
+        if not self.field_sigma:
+            return
+        n = int(n_flips[0])
+        if n > len(flips):
+            self.field = self.compute_field()
+        elif not stamped:
+            _kernels.stamp_field(self.field, self.logodds, flips, n, self.field_kernel, self.field_radius)
 
     def compute_field(self) -> np.ndarray:
         """The likelihood field from scratch (exact Euclidean distance transform)."""
@@ -170,3 +167,41 @@ class ProbabilityGrid:
             return None
         cols = np.flatnonzero(self.known.any(axis=0))
         return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+
+
+def insert_scan(grids: list[ProbabilityGrid], origin_xy, hits: np.ndarray, misses: np.ndarray | None = None):
+    """Insert one scan (grid frame, shared by ``grids``) into each grid; two grids with the same
+    update rules (the active submaps) are updated in parallel, one per thread."""
+    ends = hits if misses is None or len(misses) == 0 else np.concatenate([hits, misses])
+    if len(ends) == 0:
+        return
+    origin = np.asarray(origin_xy, dtype=float)
+    lo = np.minimum(ends.min(axis=0), origin)
+    hi = np.maximum(ends.max(axis=0), origin)
+    is_hit = np.zeros(len(ends), dtype=np.bool_)
+    is_hit[: len(hits)] = True
+    prepared = [g._prepare(ends, origin, lo, hi) for g in grids]
+    if len(grids) == 2 and _same_rules(*grids):
+        a, b = grids
+        (ca, oa, fa, na), (cb, ob, fb, nb) = prepared
+        with_field = bool(a.field_sigma)
+        _kernels.insert_rays_pair(a.logodds, a.prob, a.stamp, a.scan_id, float(oa[0]), float(oa[1]), ca, fa, na, a.field,
+                                  b.logodds, b.prob, b.stamp, b.scan_id, float(ob[0]), float(ob[1]), cb, fb, nb, b.field,
+                                  is_hit, a.hit_delta, a.miss_delta, a.lo_min, a.lo_max,
+                                  a.field_kernel if with_field else _NO_KERNEL, a.field_radius if with_field else 0,
+                                  with_field)
+        a._field_after(fa, na, stamped=True)
+        b._field_after(fb, nb, stamped=True)
+        return
+    for g, (cells, o, flips, n_flips) in zip(grids, prepared):
+        _kernels.insert_rays(g.logodds, g.prob, g.stamp, g.scan_id, float(o[0]), float(o[1]), cells, is_hit,
+                             g.hit_delta, g.miss_delta, g.lo_min, g.lo_max, flips, n_flips)
+        g._field_after(flips, n_flips, stamped=False)
+
+
+_NO_KERNEL = np.zeros((1, 1), dtype=np.float32)
+
+
+def _same_rules(a: ProbabilityGrid, b: ProbabilityGrid) -> bool:
+    return (a.hit_delta == b.hit_delta and a.miss_delta == b.miss_delta and a.lo_min == b.lo_min
+            and a.lo_max == b.lo_max and a.field_sigma == b.field_sigma and a.resolution == b.resolution)

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from slam2d.grid.probability_grid import ProbabilityGrid
+from slam2d.grid.probability_grid import ProbabilityGrid, insert_scan
 from slam2d.matching.search import MatchGrid
 
 
@@ -60,8 +60,8 @@ class ActiveSubmaps:
             self._add(local_pose)
         finished = []
         self.last_inserted_into = [(s.index, s.local_pose) for s in self.submaps]
+        insert_scan([s.grid for s in self.submaps], origin, hits, misses)
         for s in self.submaps:
-            s.grid.insert(origin, hits, misses)
             s.num_range_data += 1
             s.node_indices.append(node_index)
         if self.submaps[0].num_range_data == 2 * self.num_range_data:

@@ -16,8 +16,9 @@ The scan timestamp is ``ipc_ts`` (the Freiburg benchmark relations use it). Read
 or above the sensor's no-return value are flagged invalid and never become hits. The
 no-return value is a fact of the data: the log-wide maximum reading when it repeats (a
 saturated laser writes the same number, e.g. 81.83, 81.91 or 50.0 m), or the maximum
-range stated in a ROBOTLASER1 line. A streaming first pass finds it, so memory stays
-constant however long the log is.
+range stated in a ROBOTLASER1 line. A first pass finds it; it keeps the parsed records for
+the second pass in memory up to ``RECORD_MEMORY_BUDGET`` bytes and in an unnamed temporary
+file beyond, so memory stays bounded however long the log is.
 """
 from __future__ import annotations
 
@@ -45,6 +46,60 @@ SATURATION_MIN_SHARE = 1e-4
 SATURATION_MIN_COUNT = 5
 
 _LASER_TYPES = ("FLASER", "RLASER", "ROBOTLASER1")
+#: parsed laser records beyond this many bytes go to a temporary file (``_RecordStore``)
+RECORD_MEMORY_BUDGET = 256 * 1024 * 1024
+
+
+class _RecordStore:
+    """The first pass's parsed laser records: in memory up to a byte budget, then spilled to
+    an unnamed temporary file (the disk, not memory, grows with the log)."""
+
+    def __init__(self, budget: int | None = None):
+        self.budget = RECORD_MEMORY_BUDGET if budget is None else budget
+        self.records: list = []
+        self.nbytes = 0
+        self.count = 0
+        self.file = None
+        self._dump = None
+
+    def append(self, lineno: int, p: "_Parsed"):
+        self.count += 1
+        if self.file is None:
+            self.records.append((lineno, p))
+            self.nbytes += p.ranges.nbytes + 200 + (0 if p.intensities is None else p.intensities.nbytes)
+            if self.nbytes > self.budget:
+                self._spill()
+            return
+        self._write(lineno, p)
+
+    def _spill(self):
+        self.file = tempfile.TemporaryFile()
+        self._dump = pickle.Pickler(self.file, protocol=pickle.HIGHEST_PROTOCOL)
+        for lineno, p in self.records:
+            self._write(lineno, p)
+        self.records = []
+
+    def _write(self, lineno, p):
+        self._dump.dump((lineno, p.kind, p.timestamp, p.timestamp_text, p.ranges.tobytes(), p.angle_min,
+                         p.angle_increment, tuple(p.laser_pose), tuple(p.robot_pose), p.max_range,
+                         None if p.intensities is None else p.intensities.tobytes()))
+        self._dump.clear_memo()
+
+    def __iter__(self):
+        if self.file is None:
+            yield from self.records
+            return
+        self.file.seek(0)
+        load = pickle.Unpickler(self.file)
+        for _ in range(self.count):
+            ln, kind, t, text, r, a0, da, lp, rp, mr, inten = load.load()
+            yield ln, _Parsed(kind, t, text, np.frombuffer(r, dtype=np.float64), a0, da, np.array(lp), np.array(rp), mr,
+                              None if inten is None else np.frombuffer(inten, dtype=np.float32))
+
+    def close(self):
+        self.records = []
+        if self.file is not None:
+            self.file.close()
 
 
 @dataclass
@@ -167,9 +222,9 @@ class CarmenLog:
     def __init__(self, path: str | Path):
         self.path = Path(path)
         self._facts: CarmenFacts | None = None
-        # the first pass keeps its parsed laser records in an unnamed temporary file, so the
-        # second pass neither decompresses nor parses again (disk, not memory, grows with the log)
-        self._spool = None
+        # the first pass keeps its parsed laser records (memory up to a budget, then a temporary
+        # file), so the second pass neither decompresses nor parses again
+        self._spool: _RecordStore | None = None
 
     def num_scans(self) -> int:
         return self.facts().num_scans
@@ -182,8 +237,7 @@ class CarmenLog:
 
     def _survey(self) -> CarmenFacts:
         f = CarmenFacts()
-        spool = tempfile.TemporaryFile()
-        dump = pickle.Pickler(spool, protocol=pickle.HIGHEST_PROTOCOL)
+        spool = _RecordStore()
         for lineno, kind, parts in self._records():
             if kind == "PARAM":
                 if len(parts) >= 3:
@@ -194,10 +248,7 @@ class CarmenLog:
                 f.num_odom += 1
                 continue
             p = _parse_laser(self.path, lineno, parts)
-            dump.dump((lineno, p.kind, p.timestamp, p.timestamp_text, p.ranges.tobytes(), p.angle_min,
-                       p.angle_increment, tuple(p.laser_pose), tuple(p.robot_pose), p.max_range,
-                       None if p.intensities is None else p.intensities.tobytes()))
-            dump.clear_memo()
+            spool.append(lineno, p)
             f.num_scans += 1
             r = p.ranges[np.isfinite(p.ranges)]
             f.num_readings += p.ranges.size
@@ -216,14 +267,9 @@ class CarmenLog:
         return f
 
     def _laser_records(self):
-        """(line number, parsed laser record) from the first pass's spool."""
-        spool = self._spool
-        spool.seek(0)
-        load = pickle.Unpickler(spool)
-        for _ in range(self.facts().num_scans):
-            ln, kind, t, text, r, a0, da, lp, rp, mr, inten = load.load()
-            yield ln, _Parsed(kind, t, text, np.frombuffer(r, dtype=np.float64), a0, da, np.array(lp), np.array(rp), mr,
-                              None if inten is None else np.frombuffer(inten, dtype=np.float32))
+        """(line number, parsed laser record) kept by the first pass."""
+        self.facts()
+        yield from self._spool
 
     def _records(self):
         for lineno, line in iter_lines(self.path):
