@@ -191,10 +191,12 @@ def _percentiles(v: list[float]) -> dict:
 def build_map(cfg: SlamConfig, nodes: list[Node], poses: dict[int, np.ndarray] | None = None) -> ProbabilityGrid:
     """Insert every node's range data at its pose (``poses`` by scan index overrides the node's own)."""
     grid = ProbabilityGrid.from_config(cfg.grid, resolution=cfg.map.resolution)
+    scans = []
     for node in nodes:
         pose = poses[node.scan_index] if poses is not None else node.local_pose
         rd = RangeData(node.origin.astype(float), node.hits.astype(float), node.misses.astype(float)).transformed(pose)
-        grid.insert(rd.origin, rd.hits, rd.misses)
+        scans.append((rd.origin, rd.hits, rd.misses))
+    grid.insert_scans(scans)  # in order, rows split among threads: equal to inserting one at a time
     return grid
 
 

@@ -137,3 +137,35 @@ def test_two_grids_in_parallel_equal_one_at_a_time(sigma):
             np.testing.assert_array_equal(a.field, b.field)
             np.testing.assert_allclose(a.field, a.compute_field(), atol=1e-6)
             assert a.field.max() == 1.0
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_many_scans_striped_equal_one_at_a_time(threads):
+    """The map is built by one kernel whose threads own bands of rows; it must equal scan-by-scan insertion."""
+    rng = np.random.default_rng(5)
+    angles = np.linspace(-np.pi / 2, np.pi / 2, 90)
+    scans = []
+    for i in range(25):
+        r = rng.uniform(0.3, 5.0, 90)
+        o = rng.normal(0, 1.0, 2)
+        hits = np.c_[r * np.cos(angles + i), r * np.sin(angles + i)] + o
+        misses = (hits[::15] - o) * 2.0 + o if i % 3 else np.zeros((0, 2))
+        scans.append((o, hits, misses))
+    scans.append((np.zeros(2), np.zeros((0, 2)), np.zeros((0, 2))))  # an empty scan changes nothing
+    many = ProbabilityGrid(0.05)
+    many.insert_scans(scans, threads=threads)
+    one = ProbabilityGrid(0.05)
+    for o, h, m in scans:
+        one.insert(o, h, m)
+    # the grids grew differently (at once / step by step): compare the observed parts in place
+    crops = []
+    for g in (many, one):
+        r0, r1, c0, c1 = g.known_bounds()
+        crops.append((g.origin + np.array([c0, r0]) * g.resolution, g.logodds[r0:r1, c0:c1], g.prob[r0:r1, c0:c1],
+                      g.known[r0:r1, c0:c1]))
+    (oa, la, pa, ka), (ob, lb, pb, kb) = crops
+    np.testing.assert_allclose(oa, ob, atol=1e-9)
+    np.testing.assert_array_equal(la, lb)
+    np.testing.assert_array_equal(pa, pb)
+    np.testing.assert_array_equal(ka, kb)
+    assert (la > 0).sum() > 500

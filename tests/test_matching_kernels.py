@@ -145,3 +145,17 @@ def test_score_covariance_matches_oracle(seed):
     _kernels.score_covariance(scores, offs, th, 40.0, out)
     np.testing.assert_allclose(out, covariance_oracle(scores, offs, th, 40.0), rtol=1e-6, atol=1e-12)
     assert np.all(np.linalg.eigvalsh(out) > 0)
+
+
+def test_delta_penalty_matches_oracle():
+    rng = np.random.default_rng(9)
+    w, res = 4, 0.05
+    angles = np.linspace(-0.1, 0.1, 5)
+    scores = rng.uniform(0.2, 0.9, (5, 2 * w + 1, 2 * w + 1)).astype(np.float32)
+    got = scores.copy()
+    _kernels.apply_delta_penalty(got, angles, 0.7, 2.0, res)
+    offs = np.arange(-w, w + 1) * res
+    dist = np.hypot(offs[None, :], offs[:, None])
+    factor = np.exp(-np.square(0.7 * dist[None] + 2.0 * np.abs(angles)[:, None, None]))
+    np.testing.assert_allclose(got, scores * factor, rtol=1e-6)
+    assert got[2, w, w] == scores[2, w, w]  # the predicted pose is not penalized

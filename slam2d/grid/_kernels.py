@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 from numba import njit, prange
 
 
@@ -30,7 +31,7 @@ def _apply(logodds, prob, stamp, r, c, scan_id, delta, lo_min, lo_max):
 
 @njit(cache=True, nogil=True)
 def insert_rays(logodds, prob, stamp, scan_id, ox, oy, ends, is_hit, hit_delta, miss_delta, lo_min, lo_max,
-                flips, n_flips):
+                flips, n_flips, row_lo=0, row_hi=-1):
     """Insert rays from (ox, oy) to ``ends`` (M, 2), all in cell units (continuous, lower-left origin).
 
     Endpoints with ``is_hit`` get one hit update per scan even when several rays end in the
@@ -39,9 +40,11 @@ def insert_rays(logodds, prob, stamp, scan_id, ox, oy, ends, is_hit, hit_delta, 
     cross between occupied (log-odds > 0) and not are written to ``flips`` (their count to
     ``n_flips[0]``, which may exceed the buffer: then the caller recomputes what depends on it). Rays whose
     ``is_hit`` is False mark free space along the whole ray, the end cell included.
-    Cells outside the grid are skipped.
+    Cells outside the grid, or outside rows [row_lo, row_hi) when given, are skipped.
     """
     rows, cols = logodds.shape
+    r_lo = max(row_lo, 0)
+    r_hi = rows if row_hi < 0 else min(row_hi, rows)
     m = ends.shape[0]
     nf = 0
     cap = flips.shape[0]
@@ -49,7 +52,7 @@ def insert_rays(logodds, prob, stamp, scan_id, ox, oy, ends, is_hit, hit_delta, 
         if is_hit[i]:
             c = int(math.floor(ends[i, 0]))
             r = int(math.floor(ends[i, 1]))
-            if 0 <= r < rows and 0 <= c < cols:
+            if r_lo <= r < r_hi and 0 <= c < cols:
                 if _apply(logodds, prob, stamp, r, c, scan_id, hit_delta, lo_min, lo_max):
                     if nf < cap:
                         flips[nf, 0] = r
@@ -84,7 +87,7 @@ def insert_rays(logodds, prob, stamp, scan_id, ox, oy, ends, is_hit, hit_delta, 
         # the cells before the end cell: a grid traversal visits exactly |Δcol| + |Δrow| of them
         n_steps = abs(tx - cx) + abs(ty - cy)
         for _ in range(n_steps):
-            if 0 <= cy < rows and 0 <= cx < cols and stamp[cy, cx] != scan_id:
+            if r_lo <= cy < r_hi and 0 <= cx < cols and stamp[cy, cx] != scan_id:
                 stamp[cy, cx] = scan_id  # a cell is known once any scan updated it
                 old = logodds[cy, cx]
                 v = old + miss_delta
@@ -106,7 +109,7 @@ def insert_rays(logodds, prob, stamp, scan_id, ox, oy, ends, is_hit, hit_delta, 
             else:
                 t_max_y += t_delta_y
                 cy += step_y
-        if not is_hit[i] and 0 <= ty < rows and 0 <= tx < cols:
+        if not is_hit[i] and r_lo <= ty < r_hi and 0 <= tx < cols:
             if _apply(logodds, prob, stamp, ty, tx, scan_id, miss_delta, lo_min, lo_max):
                 if nf < cap:
                     flips[nf, 0] = ty
@@ -214,3 +217,27 @@ def insert_rays_pair(lo_a, prob_a, stamp_a, id_a, ox_a, oy_a, ends_a, flips_a, n
         else:
             _insert_and_stamp(lo_b, prob_b, stamp_b, id_b, ox_b, oy_b, ends_b, is_hit, hit_delta, miss_delta, lo_min,
                               lo_max, flips_b, n_flips_b, field_b, kernel, radius, with_field)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def insert_scans_striped(logodds, prob, stamp, first_id, origins, ends, starts, n_hits, hit_delta, miss_delta,
+                         lo_min, lo_max, n_stripes):
+    """Insert many scans, in order, into one grid: scan s has rays from ``origins[s]`` to
+    ``ends[starts[s]:starts[s+1]]``, its first ``n_hits[s]`` ends being hits, and scan id
+    ``first_id + s``. The rows are cut into ``n_stripes`` bands, one per thread; every thread
+    traces every ray but updates only its own rows, so each cell sees the same updates in the
+    same order as with ``insert_rays`` one scan at a time (the result is identical)."""
+    rows = logodds.shape[0]
+    n_scans = origins.shape[0]
+    for k in prange(n_stripes):
+        r0 = rows * k // n_stripes
+        r1 = rows * (k + 1) // n_stripes
+        no_flips = np.empty((0, 2), dtype=np.int32)
+        count = np.zeros(1, dtype=np.int64)
+        for sc in range(n_scans):
+            a = starts[sc]
+            b = starts[sc + 1]
+            is_hit = np.zeros(b - a, dtype=np.bool_)
+            is_hit[:n_hits[sc]] = True
+            insert_rays(logodds, prob, stamp, first_id + sc, origins[sc, 0], origins[sc, 1], ends[a:b], is_hit,
+                        hit_delta, miss_delta, lo_min, lo_max, no_flips, count, r0, r1)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 
 from scipy.ndimage import distance_transform_edt
@@ -126,6 +127,33 @@ class ProbabilityGrid:
     def insert(self, origin_xy, hits: np.ndarray, misses: np.ndarray | None = None):
         """Insert one scan: rays from ``origin_xy`` to hit points (N, 2) and to free-space ray ends (M, 2), grid frame."""
         insert_scan([self], origin_xy, hits, misses)
+
+    def insert_scans(self, scans: list, threads: int | None = None):
+        """Insert many scans ``(origin (2,), hits (N, 2), misses (M, 2))`` in order, grid frame.
+
+        The grid's rows are split among threads (``insert_scans_striped``); the result is
+        identical to inserting the scans one at a time.
+        """
+        scans = [(np.asarray(o, dtype=float), h, m) for o, h, m in scans if len(h) + len(m) > 0]
+        if not scans:
+            return
+        ends = np.concatenate([np.concatenate([h, m]) if len(m) else h for _, h, m in scans]).astype(np.float64)
+        origins = np.array([o for o, _, _ in scans], dtype=np.float64)
+        lo = np.minimum(ends.min(axis=0), origins.min(axis=0))
+        hi = np.maximum(ends.max(axis=0), origins.max(axis=0))
+        self.ensure_contains(lo[0], lo[1], hi[0], hi[1])
+        starts = np.zeros(len(scans) + 1, dtype=np.int64)
+        starts[1:] = np.cumsum([len(h) + len(m) for _, h, m in scans])
+        n_hits = np.array([len(h) for _, h, _ in scans], dtype=np.int64)
+        first = self.scan_id + 1
+        self.scan_id += len(scans)
+        n = threads or numba.get_num_threads()
+        _kernels.insert_scans_striped(self.logodds, self.prob, self.stamp, first,
+                                      np.ascontiguousarray((origins - self.origin) / self.resolution),
+                                      np.ascontiguousarray((ends - self.origin) / self.resolution), starts, n_hits,
+                                      self.hit_delta, self.miss_delta, self.lo_min, self.lo_max, max(1, int(n)))
+        if self.field_sigma:
+            self.field = self.compute_field()
 
     def _prepare(self, ends: np.ndarray, origin: np.ndarray, lo: np.ndarray, hi: np.ndarray):
         """Grow to fit, advance the scan id; (ray ends in cells, origin in cells, flips buffer, flip count)."""

@@ -411,3 +411,17 @@ def score_covariance(scores, offsets, angles, n_points, out):
     out[0, 1] = out[1, 0] = sxy / s0 - mx * my
     out[0, 2] = out[2, 0] = sxt / s0 - mx * mt
     out[1, 2] = out[2, 1] = syt / s0 - my * mt
+
+
+@njit(cache=True, nogil=True)
+def apply_delta_penalty(scores, angles, w_t, w_r, res):
+    """Multiply ``scores[a, dy + w, dx + w]`` in place by the delta penalty exp(−(w_t·d + w_r·|Δθ|)²),
+    d = |(dx, dy)|·res (the same factor ``branch_and_bound`` applies to single candidates)."""
+    if w_t == 0.0 and w_r == 0.0:
+        return
+    a_n, k, _ = scores.shape
+    w = (k - 1) // 2
+    for a in range(a_n):
+        for iy in range(k):
+            for ix in range(k):
+                scores[a, iy, ix] *= _penalty(w_t, w_r, res, angles[a], ix - w, iy - w, 1)

@@ -93,29 +93,15 @@ class DeltaPenalty:
     translation_weight: float = 0.0
     rotation_weight: float = 0.0
 
-    def factor(self, dist, dtheta):
-        return np.exp(-np.square(self.translation_weight * dist + self.rotation_weight * np.abs(dtheta)))
-
-    def window(self, angles, linear_cells, resolution) -> np.ndarray:
-        offs = np.arange(-linear_cells, linear_cells + 1) * resolution
-        dist = np.hypot(offs[None, :], offs[:, None])
-        return self.factor(dist[None, :, :], angles[:, None, None]).astype(np.float32)
-
-    def block_bound(self, cands, width, angles, resolution) -> np.ndarray:
-        """Largest factor over each candidate's block of offsets [x, x+width) × [y, y+width)."""
-        lo = cands[:, 1:3].astype(np.float64)
-        hi = lo + (width - 1)
-        nearest = np.where(lo > 0, lo, np.where(hi < 0, hi, 0.0))
-        dist = np.hypot(nearest[:, 0], nearest[:, 1]) * resolution
-        return self.factor(dist, angles[cands[:, 0]]).astype(np.float32)
-
 
 def exhaustive(grid: MatchGrid, cells: np.ndarray, linear_cells: int, penalty: DeltaPenalty | None = None,
                angles: np.ndarray | None = None) -> np.ndarray:
     """All scores, (A, 2w+1, 2w+1) indexed [angle, dy + w, dx + w] (times the penalty when given)."""
     scores = _kernels.score_window(grid.values, cells, linear_cells, np.float32(grid.unknown))
     if penalty is not None:
-        scores *= penalty.window(angles, linear_cells, grid.resolution)
+        _kernels.apply_delta_penalty(scores, np.ascontiguousarray(angles, dtype=np.float64),
+                                     float(penalty.translation_weight), float(penalty.rotation_weight),
+                                     float(grid.resolution))
     return scores
 
 
