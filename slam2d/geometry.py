@@ -47,6 +47,10 @@ def inverse(a) -> np.ndarray:
 
 def between(a, b) -> np.ndarray:
     """a⁻¹ ∘ b: pose of b in the frame of a."""
+    if np.ndim(a) == 1 and np.ndim(b) == 1:  # the per-scan case, without temporaries
+        c, s = math.cos(a[2]), math.sin(a[2])
+        dx, dy = b[0] - a[0], b[1] - a[1]
+        return np.array([c * dx + s * dy, c * dy - s * dx, _wrap1(b[2] - a[2])], dtype=float)
     return compose(inverse(a), b)
 
 

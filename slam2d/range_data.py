@@ -23,8 +23,9 @@ class RangeData:
     misses: np.ndarray  # (M, 2) tracking frame, ends of free-space rays
 
     def transformed(self, pose) -> "RangeData":
-        o = transform_points(pose, self.origin[None, :])[0]
-        return RangeData(o, transform_points(pose, self.hits), transform_points(pose, self.misses))
+        n = len(self.hits)
+        pts = transform_points(pose, np.concatenate([self.origin[None, :], self.hits, self.misses]))
+        return RangeData(pts[0], pts[1:n + 1], pts[n + 1:])
 
 
 def range_data(scan: Scan, cfg: RangeFilterConfig) -> RangeData:

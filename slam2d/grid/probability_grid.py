@@ -11,8 +11,6 @@ import math
 import numba
 import numpy as np
 
-from scipy.ndimage import distance_transform_edt
-
 from slam2d.grid import _kernels
 
 
@@ -177,6 +175,8 @@ class ProbabilityGrid:
         occ = self.logodds > 0
         if not occ.any():
             return np.zeros(self.shape, dtype=np.float32)
+        from scipy.ndimage import distance_transform_edt  # rare (a fallback): not worth its import time
+
         d = distance_transform_edt(~occ) * self.resolution
         f = np.exp(-0.5 * (d / self.field_sigma) ** 2)
         f[d > self.field_radius * self.resolution + 1e-9] = 0.0

@@ -17,7 +17,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import maximum_filter
 
 from slam2d.matching import _kernels
 
@@ -79,6 +78,8 @@ class PrecomputationStack:
 
 def sliding_max(values: np.ndarray, width: int, fill: float) -> np.ndarray:
     """out[r, c] = max(values[r:r+width, c:c+width]) (cells beyond the array count as ``fill``)."""
+    from scipy.ndimage import maximum_filter  # global SLAM only: local runs skip its import time
+
     return maximum_filter(values, size=width, origin=-(width // 2), mode="constant", cval=fill).astype(np.float32)
 
 
