@@ -74,3 +74,40 @@ def voxel_filter_indices(points, size):
             keep[m] = order[j]
             m += 1
     return np.sort(keep[:m])
+
+
+@njit(cache=True, nogil=True)
+def classify_readings(ranges, no_return_value, valid, no_return):
+    """Per beam: ``no_return`` = +inf or at/above ``no_return_value`` (NaN: none); ``valid`` = a
+    positive finite reading that is not a no-return. Returns (index of the first negative
+    reading or −1, True when every reading is NaN)."""
+    n = ranges.shape[0]
+    first_negative = -1
+    all_nan = True
+    for i in range(n):
+        r = ranges[i]
+        nan = r != r
+        if not nan:
+            all_nan = False
+        if r < 0.0 and first_negative < 0:
+            first_negative = i
+        nr = r == math.inf or (no_return_value == no_return_value and r >= no_return_value)
+        no_return[i] = nr
+        valid[i] = (not nan) and (not nr) and r > 0.0
+    return first_negative, all_nan
+
+
+@njit(cache=True, nogil=True)
+def finite_max_count(ranges):
+    """(largest finite reading, how many readings equal it); (−inf, 0) when none is finite."""
+    top = -math.inf
+    count = 0
+    for i in range(ranges.shape[0]):
+        r = ranges[i]
+        if r == r and r != math.inf and r != -math.inf:
+            if r > top:
+                top = r
+                count = 1
+            elif r == top:
+                count += 1
+    return top, count

@@ -66,3 +66,36 @@ def test_voxel_filter_matches_oracle(size):
     want = voxel_oracle(pts, size)
     np.testing.assert_array_equal(got, want)
     assert len(got) < len(pts) or size < 0.05
+
+
+@pytest.mark.parametrize("no_return", [None, 50.0])
+def test_classify_readings_matches_oracle(no_return):
+    from slam2d._kernels import classify_readings
+
+    rng = np.random.default_rng(4)
+    r = rng.uniform(0, 60, 300)
+    r[::17] = np.nan
+    r[::23] = np.inf
+    r[::31] = 0.0
+    r[5] = 50.0
+    valid = np.empty(300, bool)
+    no_ret = np.empty(300, bool)
+    neg, all_nan = classify_readings(r, np.nan if no_return is None else no_return, valid, no_ret)
+    want_nr = np.isposinf(r) | ((r >= no_return) if no_return is not None else False)
+    np.testing.assert_array_equal(no_ret, want_nr)
+    np.testing.assert_array_equal(valid, ~np.isnan(r) & ~want_nr & (r > 0))
+    assert neg == -1 and not all_nan
+    r[[40, 90]] = [-1.0, -np.inf]
+    assert classify_readings(r, 50.0, valid, no_ret)[0] == 40
+    assert classify_readings(np.full(4, np.nan), 50.0, valid[:4], no_ret[:4]) == (-1, True)
+
+
+def test_finite_max_count_matches_oracle():
+    from slam2d._kernels import finite_max_count
+
+    r = np.array([1.0, np.inf, 81.83, np.nan, 81.83, -np.inf, 3.0])
+    assert finite_max_count(r) == (81.83, 2)
+    assert finite_max_count(np.array([np.nan, np.inf])) == (-np.inf, 0)
+    rng = np.random.default_rng(0)
+    v = rng.integers(0, 20, 500).astype(float)
+    assert finite_max_count(v) == (v.max(), int((v == v.max()).sum()))

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from slam2d._kernels import classify_readings, finite_max_count
 from slam2d.errors import InputError
 from slam2d.geometry import between
 from slam2d.io._text import iter_lines
@@ -250,16 +251,15 @@ class CarmenLog:
             p = _parse_laser(self.path, lineno, parts)
             spool.append(lineno, p)
             f.num_scans += 1
-            r = p.ranges[np.isfinite(p.ranges)]
             f.num_readings += p.ranges.size
             if p.max_range is not None:
                 f.line_max_range = p.max_range if f.line_max_range is None else min(f.line_max_range, p.max_range)
-            if r.size:
-                top = float(r.max())
+            top, count = finite_max_count(p.ranges)
+            if count:
                 if top > f.max_reading:
-                    f.max_reading, f.max_reading_count = top, int(np.count_nonzero(r == top))
+                    f.max_reading, f.max_reading_count = float(top), int(count)
                 elif top == f.max_reading:
-                    f.max_reading_count += int(np.count_nonzero(r == top))
+                    f.max_reading_count += int(count)
         if f.num_scans == 0:
             spool.close()
             raise InputError(self.path, "no laser scans (FLASER, RLASER or ROBOTLASER1 lines) in the file")
@@ -307,16 +307,13 @@ class CarmenLog:
         if not (np.all(np.isfinite(p.laser_pose)) and np.all(np.isfinite(p.robot_pose))):
             raise InputError(path, "pose field is not finite", line=lineno)
         r = p.ranges
-        if np.any(r < 0):  # -inf included
-            i = int(np.flatnonzero(r < 0)[0])
-            raise InputError(path, f"negative range reading {r[i]} (beam {i})", line=lineno)
-        nan = np.isnan(r)
-        if nan.all():
+        valid = np.empty(r.shape, dtype=np.bool_)
+        no_ret = np.empty(r.shape, dtype=np.bool_)
+        negative, all_nan = classify_readings(r, math.nan if no_return is None else float(no_return), valid, no_ret)
+        if negative >= 0:  # -inf included
+            raise InputError(path, f"negative range reading {r[negative]} (beam {negative})", line=lineno)
+        if all_nan:
             raise InputError(path, "every range reading is NaN", line=lineno)
-        no_ret = np.isposinf(r)
-        if no_return is not None:
-            no_ret |= r >= no_return
-        valid = ~nan & ~no_ret & (r > 0)
         range_max = float(no_return) if no_return is not None else float(np.nanmax(np.where(np.isinf(r), np.nan, r))) if np.any(np.isfinite(r)) else 0.0
         return Scan(
             timestamp=p.timestamp,
