@@ -10,6 +10,15 @@ import numpy as np
 from numba import njit
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _put(out, k, length, angle, ox, oy, c0, s0):
+    """out[k] = the point ``length`` along beam ``angle`` of the laser, in the tracking frame."""
+    px = length * math.cos(angle)
+    py = length * math.sin(angle)
+    out[k, 0] = ox + c0 * px - s0 * py
+    out[k, 1] = oy + s0 * px + c0 * py
+
+
 @njit(cache=True, nogil=True)
 def scan_to_range_data(ranges, valid, no_return, angle_min, angle_increment, min_range, max_range, miss_length,
                        ox, oy, oth, hits, misses):
@@ -28,31 +37,18 @@ def scan_to_range_data(ranges, valid, no_return, angle_min, angle_increment, min
     nm = 0
     for i in range(n):
         r = float(ranges[i])
-        if valid[i] and r >= min_range:
-            a = angle_min + angle_increment * i
-            if r <= max_range:
-                px = r * math.cos(a)
-                py = r * math.sin(a)
-                hits[nh, 0] = ox + c0 * px - s0 * py
-                hits[nh, 1] = oy + s0 * px + c0 * py
-                nh += 1
+        if valid[i] and min_range <= r <= max_range:
+            _put(hits, nh, r, angle_min + angle_increment * i, ox, oy, c0, s0)
+            nh += 1
     for i in range(n):
         r = float(ranges[i])
         if valid[i] and r >= min_range and r > max_range:
-            a = angle_min + angle_increment * i
-            px = max_range * math.cos(a)
-            py = max_range * math.sin(a)
-            misses[nm, 0] = ox + c0 * px - s0 * py
-            misses[nm, 1] = oy + s0 * px + c0 * py
+            _put(misses, nm, max_range, angle_min + angle_increment * i, ox, oy, c0, s0)
             nm += 1
     if miss_length > 0.0:
         for i in range(n):
             if no_return[i]:
-                a = angle_min + angle_increment * i
-                px = miss_length * math.cos(a)
-                py = miss_length * math.sin(a)
-                misses[nm, 0] = ox + c0 * px - s0 * py
-                misses[nm, 1] = oy + s0 * px + c0 * py
+                _put(misses, nm, miss_length, angle_min + angle_increment * i, ox, oy, c0, s0)
                 nm += 1
     return nh, nm
 

@@ -154,20 +154,6 @@ def bicubic(values, u, v, unknown, out):
 
 
 @njit(cache=True, nogil=True)
-def _cost(values, ox, oy, res, unknown, points, x, y, t, x0, y0, t0, scale, w_t, w_r):
-    c = math.cos(t)
-    s = math.sin(t)
-    tot = 0.0
-    for i in range(points.shape[0]):
-        px = x + c * points[i, 0] - s * points[i, 1]
-        py = y + s * points[i, 0] + c * points[i, 1]
-        f, _, _ = _bicubic(values, (px - ox) / res, (py - oy) / res, unknown)
-        r = scale * (1.0 - f)
-        tot += r * r
-    return tot + (w_t * (x - x0)) ** 2 + (w_t * (y - y0)) ** 2 + (w_r * (t - t0)) ** 2
-
-
-@njit(cache=True, nogil=True)
 def _normal_equations(values, ox, oy, res, unknown, points, x, y, t, x0, y0, t0, scale, w_t, w_r, h, g):
     """Cost at (x, y, t), and the Gauss-Newton Hessian ``h`` and gradient ``g`` there (one pass over the points)."""
     c = math.cos(t)
