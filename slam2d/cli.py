@@ -126,7 +126,7 @@ def cmd_run(args) -> int:
     else:
         from slam2d.frontend import LocalSlam
 
-        tracker, mode = LocalSlam(cfg), "local"
+        tracker, mode = LocalSlam(cfg, loop_closure=not args.no_loop_closure and cfg.loop_closure.enabled), "local"
     global_slam = None
     if not args.odometry_only and not args.no_loop_closure and cfg.loop_closure.enabled:
         from slam2d.backend.global_slam import GlobalSlam

@@ -43,6 +43,10 @@ class SubmapConfig(_Section):
     """Two overlapping active submaps, as in Cartographer."""
 
     num_range_data: int = Field(90, ge=1, description="Scans inserted into a submap before the next one starts; a submap is finished after twice this many.")
+    num_range_data_without_loop_closure: int = Field(
+        400, ge=1, description="num_range_data when local SLAM runs alone (--no-loop-closure, loop_closure.enabled false): with no "
+        "pose graph to correct drift between submaps, bigger submaps tie revisits to one map; with loop closure, small rigid "
+        "submaps let the graph bend.")
 
 
 class MotionFilterConfig(_Section):

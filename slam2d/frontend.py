@@ -5,6 +5,14 @@ velocity) → range filter and voxel filter → real-time correlative scan match
 older active submap (Olson 2009) → continuous refinement → motion filter → insertion into
 both active submaps. Every scan gets a matched ``local_pose``; only scans that pass the
 motion filter are inserted and become nodes.
+
+Submap size depends on whether a pose graph follows. Without one, nothing corrects the
+drift between submaps, and a revisit is tied to the earlier pass only when both fall in
+one submap; ``submaps.num_range_data_without_loop_closure`` (400) is therefore larger
+than the 90 global SLAM uses, where small rigid submaps let the graph bend. Measured on
+intel local-only over 6–10 runs each, the world rotated by small angles (a null change that
+shows the run-to-run spread): 90 → mean 0.147 m, 300 → 0.095, 400 → 0.067, 700 → 0.079;
+global SLAM with 400 scored 0.073 m against 0.015 m with 90.
 """
 from __future__ import annotations
 
@@ -58,12 +66,16 @@ class PoseExtrapolator:
 class LocalSlam:
     name = "local"
 
-    def __init__(self, cfg: SlamConfig, observer=None):
+    def __init__(self, cfg: SlamConfig, observer=None, loop_closure: bool | None = None):
+        """``loop_closure``: whether a pose graph follows (default: ``cfg.loop_closure.enabled``); it picks the submap size."""
         self.cfg = cfg
         self.extrapolator = PoseExtrapolator()
         rt = cfg.real_time_matcher
         sigma = rt.likelihood_field_sigma if rt.score_grid == "likelihood_field" else None
-        self.submaps = ActiveSubmaps(cfg.grid, cfg.submaps.num_range_data, field_sigma=sigma)
+        if loop_closure is None:
+            loop_closure = cfg.loop_closure.enabled
+        size = cfg.submaps.num_range_data if loop_closure else cfg.submaps.num_range_data_without_loop_closure
+        self.submaps = ActiveSubmaps(cfg.grid, size, field_sigma=sigma)
         self.filter = MotionFilter(cfg.motion_filter)
         rt = cfg.real_time_matcher
         self.matcher = RealTimeCorrelativeScanMatcher(rt.linear_search_window, math.radians(rt.angular_search_window_deg),

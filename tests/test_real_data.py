@@ -99,5 +99,6 @@ def test_aces_local_slam_accuracy_regression(tmp_path):
     assert r.returncode == 0, r.stderr
     t, poses, _ = read_tum(out / "trajectory.txt")
     m = relations_metric(t, poses, read_relations(relations("aces")))
-    # raw odometry 0.56 m, Karto's sequential matcher 0.111 m; slam2d local SLAM measured 0.10-0.13 m
-    assert m["abs_trans_m"]["mean"] < 0.2
+    # raw odometry 0.56 m, Karto's sequential matcher 0.111 m; slam2d local SLAM measured 0.053-0.059 m
+    # (six runs with the world rotated by small angles); it must stay below the peer
+    assert m["abs_trans_m"]["mean"] < 0.09
