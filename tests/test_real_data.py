@@ -93,25 +93,15 @@ def test_intel_global_slam_accuracy_regression(intel_run):
     assert summary["mode"] == "global" and summary["loop_closure"]["in_final_graph"] > 100
 
 
-def test_aces_local_slam_accuracy_regression(tmp_path):
-    out = tmp_path / "aces"
-    r = slam2d("run", dataset("aces"), "--out", out, "--no-loop-closure", "--no-progress")
+# Local SLAM alone, below the Karto peer (aces 0.111 m, intel 0.141 m; scan matching in Kümmerle et al.
+# 2009 scores 0.220 m on intel). slam2d measured aces 0.048-0.061 m and intel 0.046-0.089 m over runs
+# with the world rotated by small angles (tools/spread.py: a null change that shows the run-to-run spread).
+@pytest.mark.parametrize("name, bound", [("aces", 0.09), ("intel", 0.10)])
+def test_local_slam_accuracy_regression(tmp_path, name, bound):
+    out = tmp_path / name
+    r = slam2d("run", dataset(name), "--out", out, "--no-loop-closure", "--no-progress")
     assert r.returncode == 0, r.stderr
     t, poses, _ = read_tum(out / "trajectory.txt")
-    m = relations_metric(t, poses, read_relations(relations("aces")))
-    # raw odometry 0.56 m, Karto's sequential matcher 0.111 m; slam2d local SLAM measured 0.053-0.059 m
-    # (six runs with the world rotated by small angles); it must stay below the peer
-    assert m["abs_trans_m"]["mean"] < 0.09
-
-
-def test_intel_local_slam_accuracy_regression(tmp_path):
-    out = tmp_path / "intel_local"
-    r = slam2d("run", dataset("intel"), "--out", out, "--no-loop-closure", "--no-progress")
-    assert r.returncode == 0, r.stderr
-    t, poses, _ = read_tum(out / "trajectory.txt")
-    m = relations_metric(t, poses, read_relations(relations("intel")))
-    # Karto's sequential matcher 0.141 m, scan matching in Kümmerle et al. 2009 0.220 m; slam2d local
-    # SLAM measured 0.089 m (0.046-0.089 over ten runs with the world rotated by small angles)
-    assert m["abs_trans_m"]["mean"] <= 0.10
-    summary = json.loads((out / "summary.json").read_text())
-    assert summary["mode"] == "local"
+    m = relations_metric(t, poses, read_relations(relations(name)))
+    assert m["abs_trans_m"]["mean"] <= bound
+    assert json.loads((out / "summary.json").read_text())["mode"] == "local"
