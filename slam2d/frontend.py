@@ -97,7 +97,7 @@ class LocalSlam:
         predicted = self.extrapolator.predict(scan.timestamp, scan.odom_pose)
         pose = predicted
         score = None
-        cov = None
+        kept_match = None
         submap = self.submaps.matching_submap
         if submap is not None and len(points) >= 3:
             grid = submap.match_grid()
@@ -131,14 +131,14 @@ class LocalSlam:
             finished = self.submaps.insert(pose, local.origin, local.hits, local.misses, scan.index)
             inserted_into = self.submaps.last_inserted_into
             if score is not None:
-                cov = match.covariance
+                kept_match = match
             self.finished_submaps.extend(finished)
             self.num_inserted += 1
             timings["insert"] = (time.perf_counter() - t3) * 1e3
         timings["total"] = (time.perf_counter() - t0) * 1e3
         return MatchingResult(scan.timestamp, pose, rd, inserted, score, timings,
                               active_submap=self.submaps.matching_submap, finished_submaps=finished,
-                              inserted_into=inserted_into, covariance=cov, points=points)
+                              inserted_into=inserted_into, match=kept_match, points=points)
 
     def all_submaps(self):
         return list(self.finished_submaps) + list(self.submaps.submaps)

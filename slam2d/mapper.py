@@ -33,8 +33,13 @@ class MatchingResult:
     active_submap: object = None          # the submap this scan was matched against (local SLAM)
     finished_submaps: list = field(default_factory=list)  # submaps this insertion finished
     inserted_into: list = field(default_factory=list)     # (submap index, submap local pose) it went into
-    covariance: np.ndarray | None = None  # of the local match (Olson 2009, Sec. IV)
+    match: object = None                  # the correlative match of an inserted scan
     points: np.ndarray | None = None      # the filtered points that were matched (tracking frame)
+
+    @property
+    def covariance(self) -> np.ndarray | None:
+        """Covariance of the local match (Olson 2009, Sec. IV), computed on demand: only global SLAM uses it."""
+        return None if self.match is None else self.match.covariance
 
 
 class OdometryTracker:
