@@ -78,7 +78,6 @@ class LocalSlam:
         size = cfg.submaps.num_range_data if loop_closure else cfg.submaps.num_range_data_without_loop_closure
         self.submaps = ActiveSubmaps(cfg.grid, size, field_sigma=sigma)
         self.filter = MotionFilter(cfg.motion_filter)
-        rt = cfg.real_time_matcher
         self.matcher = RealTimeCorrelativeScanMatcher(rt.linear_search_window, math.radians(rt.angular_search_window_deg),
                                                       rt.branch_depth, rt.translation_delta_cost_weight,
                                                       rt.rotation_delta_cost_weight)

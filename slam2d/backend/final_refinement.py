@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from slam2d.geometry import wrap
 from slam2d.grid.probability_grid import ProbabilityGrid
 from slam2d.matching.refine import refine
 from slam2d.matching.search import MatchGrid
@@ -34,7 +35,7 @@ def refine_trajectory(grid: ProbabilityGrid, poses: np.ndarray, points: list[np.
         if pts is None or len(pts) < 3:
             continue
         out[i], _ = refine(match_grid, out[i], pts, occupied_weight, translation_weight, rotation_weight, max_iterations)
-    out[:, 2] = np.remainder(out[:, 2] + np.pi, 2 * np.pi) - np.pi
+    out[:, 2] = wrap(out[:, 2])
     return out
 
 

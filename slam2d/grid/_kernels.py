@@ -87,6 +87,7 @@ def insert_rays(logodds, prob, stamp, scan_id, ox, oy, ends, is_hit, hit_delta, 
         # the cells before the end cell: a grid traversal visits exactly |Δcol| + |Δrow| of them
         n_steps = abs(tx - cx) + abs(ty - cy)
         for _ in range(n_steps):
+            # ``_apply`` written out: calling it here (inline="always") made insertion 1.6x slower
             if r_lo <= cy < r_hi and 0 <= cx < cols and stamp[cy, cx] != scan_id:
                 stamp[cy, cx] = scan_id  # a cell is known once any scan updated it
                 old = logodds[cy, cx]

@@ -94,8 +94,6 @@ class RerunObserver(Observer):
         self._logged_finished = set()
         self._global = None
         self._submap_logged: dict = {}
-        self._optimizations = 0
-        self.graph_every = 1  # the pose graph is re-sent after every n-th optimization (and at the end)
 
     @staticmethod
     def _empty():
@@ -206,9 +204,7 @@ class RerunObserver(Observer):
             if last is None or np.hypot(*(T[:2] - last[:2])) > 0.02 or abs(T[2] - last[2]) > 0.0035:
                 rr.log(f"/world/submaps/{k}", grid_map(global_slam.matchers[k].submap.grid, T))
                 self._submap_logged[k] = T
-        self._optimizations += 1
-        if self._optimizations % self.graph_every:
-            return
+        # the whole pose graph is re-sent after every optimization, from one bulk read of the node poses
         ids, poses = global_slam.graph.all_node_poses()
         xy = poses[:, :2].astype(np.float32)
 
