@@ -218,13 +218,19 @@ def cmd_view(args) -> int:
 def cmd_info(args) -> int:
     from slam2d.summary import describe
 
-    info = describe(_source(args))
+    source = _source(args)
+    info = describe(source)
     info["file"] = args.input
+    facts = getattr(source, "facts", None)
+    if callable(facts):  # CARMEN: what the first pass decided about no-return readings, and why
+        f = facts()
+        info["no_return_threshold_m"] = f.no_return_value
+        info["no_return_evidence"] = f.no_return_evidence
     if args.json:
         print(json.dumps(info, indent=2))
     else:
         for k, v in info.items():
-            print(f"{k:>22}: {v}")
+            print(f"{k:>28}: {v}")
     return 0
 
 

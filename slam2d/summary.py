@@ -18,8 +18,15 @@ def _version() -> str:
         return "unknown"
 
 
-def describe(source) -> dict:
-    """One streaming pass over the scans."""
+def describe(source, usable_range: float | None = None) -> dict:
+    """One streaming pass over the scans. ``usable_range``: ``range_filter.max_range`` (default:
+    the default config's); returns beyond it are inserted as free space, not as hits."""
+    if usable_range is None:
+        from slam2d.config import RangeFilterConfig
+
+        usable_range = RangeFilterConfig().max_range
+    usable = float(usable_range)
+    beyond = 0
     n = 0
     t_min, t_max = math.inf, -math.inf
     beams = set()
@@ -44,6 +51,7 @@ def describe(source) -> dict:
         nan += int(np.count_nonzero(np.isnan(s.ranges)))
         if s.valid.any():
             hit_max = max(hit_max, float(s.ranges[s.valid].max()))
+            beyond += int(np.count_nonzero(s.ranges[s.valid] > usable))
         if s.no_return is not None:
             no_ret += int(np.count_nonzero(s.no_return))
         with_odom += s.odom_pose is not None
@@ -60,6 +68,8 @@ def describe(source) -> dict:
         "range_min_m": r_min,
         "range_max_m": r_max,
         "max_hit_range_m": round(hit_max, 4),
+        "usable_range_m": usable,
+        "returns_beyond_usable_range": beyond,
         "readings": readings,
         "invalid_readings": invalid,
         "no_return_readings": no_ret,

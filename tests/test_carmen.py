@@ -90,6 +90,54 @@ def test_no_return_value_is_the_repeated_maximum(tmp_path, flaser_line):
     assert scans[0].range_max == pytest.approx(81.83)
 
 
+def _far_readings(rng, n):
+    """Real far returns: continuous values (1 cm resolution) between 40 and 81.9 m, rarely equal."""
+    return [f"{v:.2f}" for v in rng.uniform(40.0, 81.9, n)]
+
+
+def test_several_no_return_values_near_the_maximum(tmp_path, flaser_line):
+    """fr-clinic writes no-returns as 81.83 and as 81.91 m; both must be no-returns, far real returns must not."""
+    rng = np.random.default_rng(3)
+    lines = []
+    for i in range(200):
+        far = _far_readings(rng, 4)
+        lines.append(flaser_line([1.0, "81.83", 2.0, "81.91", "81.91", *far], ts=f"{100 + i}.0"))
+    log = CarmenLog(write(tmp_path, "".join(lines)))
+    facts = log.facts()
+    assert sorted(e["value"] for e in facts.no_return_evidence) == [81.83, 81.91]
+    for s in log:
+        assert s.no_return[[1, 3, 4]].all() and not s.valid[[1, 3, 4]].any()
+        assert s.valid[[0, 2]].all()
+        np.testing.assert_array_equal(s.valid[5:], s.ranges[5:] < 81.83)
+    # readings below the lowest no-return value stay returns
+    valid_far = sum(int(s.valid[5:].sum()) for s in log)
+    assert valid_far >= 0.95 * 4 * 200
+
+
+def test_a_frequent_near_reading_is_not_a_no_return(tmp_path, flaser_line):
+    """A wall seen from a parked robot repeats one reading thousands of times; it is far below the maximum."""
+    rng = np.random.default_rng(4)
+    lines = [flaser_line(["3.21"] * 20 + _far_readings(rng, 3), ts=f"{100 + i}.0") for i in range(300)]
+    log = CarmenLog(write(tmp_path, "".join(lines)))
+    assert log.facts().no_return_value is None
+    assert all(s.valid.all() for s in log)
+
+
+def test_robotlaser1_max_range_and_spike_together(tmp_path):
+    """ROBOTLASER1's max_range field is a no-return value; a spike below it lowers the threshold."""
+    lines = []
+    for i in range(50):
+        ranges = "1.0 81.83 2.5 81.91 70.0"
+        lines.append(f"ROBOTLASER1 0 -1.5708 3.1416 0.785398 81.9 0.01 0 5 {ranges} 0 "
+                     f"0.22 0 0 0 0 0 0 0 0 0 0 {200 + i}.0 host {i}.0\n")
+    log = CarmenLog(write(tmp_path, "".join(lines)))
+    ev = log.facts().no_return_evidence
+    assert {e["value"] for e in ev} == {81.83, 81.9, 81.91}
+    assert log.facts().no_return_value == pytest.approx(81.83)
+    s = next(iter(log))
+    assert s.valid.tolist() == [True, False, True, False, True]
+
+
 def test_no_saturation_means_every_reading_is_a_hit(tmp_path, flaser_line):
     lines = [flaser_line([1.0 + i, 2.0, 3.0], ts=f"{100 + i}.0") for i in range(3)]
     assert all(s.valid.all() for s in CarmenLog(write(tmp_path, "".join(lines))))

@@ -13,10 +13,13 @@ Message formats (CARMEN 0.7 logger):
   other messages (RAWLASER*, TRUEPOS, NEFF, SYNC, ...) are skipped.
 
 The scan timestamp is ``ipc_ts`` (the Freiburg benchmark relations use it). Readings at
-or above the sensor's no-return value are flagged invalid and never become hits. The
-no-return value is a fact of the data: the log-wide maximum reading when it repeats (a
-saturated laser writes the same number, e.g. 81.83, 81.91 or 50.0 m), or the maximum
-range stated in a ROBOTLASER1 line. A first pass finds it; it keeps the parsed records for
+or above the sensor's no-return threshold are flagged invalid and never become hits. The
+threshold is a fact of the data, decided by a first pass (``NoReturnSurvey``): a laser that
+sees nothing writes one fixed number, so a no-return value shows up as a *spike* in the
+histogram of readings near the log's maximum — one exact value far more frequent than the
+readings around it (81.83 m on Intel, 50.0 m on ACES; fr-clinic has two, 81.83 and 81.91).
+The maximum range stated in a ROBOTLASER1 line is a no-return value too. The lowest of
+these is the threshold. The first pass keeps the parsed records for
 the second pass in memory up to ``RECORD_MEMORY_BUDGET`` bytes and in an unnamed temporary
 file beyond, so memory stays bounded however long the log is.
 """
@@ -42,9 +45,14 @@ log = logging.getLogger(__name__)
 #: a scan stamped earlier than its predecessor by up to this much is tolerated and counted
 #: (the Intel log has such reorderings, up to 0.9 s); a larger jump back is an error
 MAX_TIME_REVERSAL = 1.0
-#: the log-wide maximum reading is a no-return value when at least this share of beams has it
+#: a repeated reading near the top is a no-return value when at least this share of beams has it
 SATURATION_MIN_SHARE = 1e-4
 SATURATION_MIN_COUNT = 5
+#: ... it lies within this fraction of the log's maximum reading
+SPIKE_BAND = 0.9
+#: ... and it is this many times more frequent than the typical value within ±SPIKE_NEIGHBOURHOOD m
+SPIKE_RATIO = 20.0
+SPIKE_NEIGHBOURHOOD = 1.0
 
 _LASER_TYPES = ("FLASER", "RLASER", "ROBOTLASER1")
 #: parsed laser records beyond this many bytes go to a temporary file (``_RecordStore``)
@@ -117,25 +125,93 @@ class _Parsed:
     intensities: np.ndarray | None = None
 
 
+class NoReturnSurvey:
+    """Histogram of the readings near the log's maximum, to find its no-return values.
+
+    Exact values are counted only in the band above ``SPIKE_BAND / 2`` of the running maximum
+    (values below it are pruned when the histogram is compacted), so memory stays small
+    whatever the log's length.
+    """
+
+    COMPACT_EVERY = 1 << 20  # readings buffered before the histogram is compacted
+
+    def __init__(self):
+        self.max_reading = -math.inf
+        self.values = np.empty(0)
+        self.counts = np.empty(0, dtype=np.int64)
+        self._pending: list[np.ndarray] = []
+        self._pending_n = 0
+
+    def add(self, ranges: np.ndarray):
+        top, count = finite_max_count(ranges)
+        if count == 0:
+            return
+        self.max_reading = max(self.max_reading, float(top))
+        band = ranges[ranges >= 0.5 * SPIKE_BAND * self.max_reading]
+        band = band[np.isfinite(band)]
+        if band.size:
+            self._pending.append(band)
+            self._pending_n += band.size
+            if self._pending_n >= self.COMPACT_EVERY:
+                self._compact()
+
+    def _compact(self):
+        if not self._pending:
+            return
+        vals = np.concatenate([self.values, *self._pending])
+        weights = np.concatenate([self.counts, np.ones(self._pending_n, dtype=np.int64)])
+        self._pending, self._pending_n = [], 0
+        uniq, inv = np.unique(vals, return_inverse=True)
+        cnt = np.bincount(inv, weights=weights).astype(np.int64)
+        keep = uniq >= 0.5 * SPIKE_BAND * self.max_reading
+        self.values, self.counts = uniq[keep], cnt[keep]
+
+    def spikes(self, num_readings: int) -> list[dict]:
+        """The no-return values, each with its count and the typical count of the values around it."""
+        self._compact()
+        vals, cnts = self.values, self.counts
+        need = max(SATURATION_MIN_COUNT, SATURATION_MIN_SHARE * num_readings)
+        out = []
+        frequent = (cnts >= need) & (vals >= SPIKE_BAND * self.max_reading)
+        for i in np.flatnonzero(frequent):
+            # the background: values around it that are not frequent themselves (two no-return
+            # values side by side, as in fr-clinic, must not hide each other)
+            lo, hi = np.searchsorted(vals, [vals[i] - SPIKE_NEIGHBOURHOOD, vals[i] + SPIKE_NEIGHBOURHOOD], side="left")
+            near = cnts[lo:hi][~frequent[lo:hi]]
+            typical = float(np.median(near)) if near.size else 1.0
+            if cnts[i] >= SPIKE_RATIO * typical:
+                out.append({"value": float(vals[i]), "count": int(cnts[i]), "typical_count_nearby": typical})
+        return out
+
+
 @dataclass
 class CarmenFacts:
     """What a first pass over the log learns."""
 
     num_scans: int = 0
     num_odom: int = 0
-    max_reading: float = -math.inf
-    max_reading_count: int = 0
     num_readings: int = 0
     line_max_range: float | None = None
     params: dict = field(default_factory=dict)
+    survey: NoReturnSurvey = field(default_factory=NoReturnSurvey)
+
+    @property
+    def max_reading(self) -> float:
+        return self.survey.max_reading
+
+    @property
+    def no_return_evidence(self) -> list[dict]:
+        """Why each no-return value was chosen (``slam2d info`` prints it)."""
+        out = [dict(s, why="a repeated reading near the log's maximum (a spike over the readings around it)")
+               for s in self.survey.spikes(self.num_readings)]
+        if self.line_max_range is not None:
+            out.append({"value": self.line_max_range, "why": "the max_range field of the ROBOTLASER1 lines"})
+        return out
 
     @property
     def no_return_value(self) -> float | None:
-        cands = []
-        if self.line_max_range is not None:
-            cands.append(self.line_max_range)
-        if self.max_reading_count >= max(SATURATION_MIN_COUNT, SATURATION_MIN_SHARE * self.num_readings):
-            cands.append(self.max_reading)
+        """The no-return threshold: every reading at or above it is a no-return (the lowest no-return value)."""
+        cands = [e["value"] for e in self.no_return_evidence]
         return min(cands) if cands else None
 
 
@@ -254,12 +330,7 @@ class CarmenLog:
             f.num_readings += p.ranges.size
             if p.max_range is not None:
                 f.line_max_range = p.max_range if f.line_max_range is None else min(f.line_max_range, p.max_range)
-            top, count = finite_max_count(p.ranges)
-            if count:
-                if top > f.max_reading:
-                    f.max_reading, f.max_reading_count = float(top), int(count)
-                elif top == f.max_reading:
-                    f.max_reading_count += int(count)
+            f.survey.add(p.ranges)
         if f.num_scans == 0:
             spool.close()
             raise InputError(self.path, "no laser scans (FLASER, RLASER or ROBOTLASER1 lines) in the file")
