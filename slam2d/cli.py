@@ -171,6 +171,11 @@ def cmd_run(args) -> int:
         summary = run_summary(args.input, mode, result, wall, wall_map, tracker)
         if global_slam is not None:
             summary.update(global_slam.summary())
+        from slam2d.health import assess
+
+        t_h = time.perf_counter()
+        summary["health"] = assess(grid, result.nodes, result.poses, summary.get("local_slam"), summary.get("loop_closure"))
+        summary["timings"]["health_s"] = round(time.perf_counter() - t_h, 3)
         out.write_json("summary.json", summary)
         out.commit()
         if rrd_tmp:
@@ -182,6 +187,9 @@ def cmd_run(args) -> int:
         if rrd_tmp:
             Path(rrd_tmp).unlink(missing_ok=True)
         raise
+    h = summary["health"]
+    if h["status"] != "OK":
+        print(f"slam2d: warning: map health {h['status']}: " + "; ".join(h["reasons"]), file=sys.stderr)
     log.info("wrote %s (%d scans, %.1f s)", args.out, len(result.stamps), wall)
     print(f"{len(result.stamps)} scans -> {args.out} in {wall:.1f} s")
     return 0

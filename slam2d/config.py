@@ -47,6 +47,11 @@ class SubmapConfig(_Section):
         400, ge=1, description="num_range_data when local SLAM runs alone (--no-loop-closure, loop_closure.enabled false): with no "
         "pose graph to correct drift between submaps, bigger submaps tie revisits to one map; with loop closure, small rigid "
         "submaps let the graph bend.")
+    max_travel: float = Field(
+        20.0, gt=0.0, description="A submap is also full once the robot travelled this far [m] since it started, so its extent "
+        "follows the path, not the scan rate (about num_range_data × motion_filter.max_distance: dense logs fill a submap by "
+        "count first, a sparse log with scans a metre apart by distance). Without loop closure it scales like the count "
+        "(× num_range_data_without_loop_closure / num_range_data).")
 
 
 class MotionFilterConfig(_Section):
@@ -67,6 +72,11 @@ class RealTimeMatcherConfig(_Section):
     min_linear_search_window: float = Field(0.05, gt=0.0, description="Half-width of the x/y window when the robot did not move [m]; it grows with the motion since the last scan.")
     min_angular_search_window_deg: float = Field(1.0, gt=0.0, description="Half-width of the rotation window when the robot did not turn [deg].")
     window_motion_fraction: float = Field(0.7, ge=0.0, description="The windows grow by this fraction of the predicted motion since the last scan (odometry error grows with motion); a best pose on the window's edge repeats the search with the largest windows.")
+    window_angle_per_metre_deg: float = Field(5.0, ge=0.0, description="The rotation window also grows by this much per metre travelled since the last scan [deg/m]: the heading error of wheel odometry grows with distance, so a log with scans a metre apart needs no other setting.")
+    min_relative_score: float = Field(0.8, gt=0.0, le=1.0, description="A match is trusted when its score is at least this fraction of the median score of recent trusted matches; a lower one, or a best pose on the edge of the largest window, triggers the recovery search.")
+    recovery_linear_window: float = Field(2.0, gt=0.0, description="Recovery: half-width of the x/y window [m] searched by branch-and-bound around each prediction (odometry, constant velocity, no motion) when a match is not trusted.")
+    recovery_angular_window_deg: float = Field(45.0, gt=0.0, le=180.0, description="Recovery: half-width of the rotation window [deg].")
+    max_untrusted_in_a_row: int = Field(3, ge=0, description="A scan whose match is still not trusted after recovery is not inserted into the submaps, unless this many scans in a row were not trusted (the robot then sees new ground, not a failed match).")
     branch_depth: int = Field(0, ge=0, le=6, description="Levels of the coarse-to-fine search (0 = exhaustive); results equal the exhaustive search on the same lattice.")
     translation_delta_cost_weight: float = Field(0.1, ge=0.0, description="Scores are multiplied by exp(-(w_t·|Δt| + w_r·|Δθ|)²): prefers the predicted pose where the scan alone cannot decide (Cartographer's default 0.1).")
     rotation_delta_cost_weight: float = Field(0.1, ge=0.0, description="w_r of the same penalty [per rad].")

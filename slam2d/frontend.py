@@ -20,6 +20,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections import deque
 
 import numpy as np
 
@@ -33,6 +34,11 @@ from slam2d.motion_filter import MotionFilter
 from slam2d.range_data import range_data, voxel_filter
 
 log = logging.getLogger(__name__)
+
+#: the typical score is the median of this many recent trusted matches ...
+RECENT_SCORES = 50
+#: ... and judges matches once this many exist (before that every match is trusted)
+MIN_SCORES_FOR_TRUST = 10
 
 
 class PoseExtrapolator:
@@ -75,8 +81,9 @@ class LocalSlam:
         sigma = rt.likelihood_field_sigma if rt.score_grid == "likelihood_field" else None
         if loop_closure is None:
             loop_closure = cfg.loop_closure.enabled
-        size = cfg.submaps.num_range_data if loop_closure else cfg.submaps.num_range_data_without_loop_closure
-        self.submaps = ActiveSubmaps(cfg.grid, size, field_sigma=sigma)
+        sm = cfg.submaps
+        size = sm.num_range_data if loop_closure else sm.num_range_data_without_loop_closure
+        self.submaps = ActiveSubmaps(cfg.grid, size, field_sigma=sigma, max_travel=sm.max_travel * size / sm.num_range_data)
         self.filter = MotionFilter(cfg.motion_filter)
         self.matcher = RealTimeCorrelativeScanMatcher(rt.linear_search_window, math.radians(rt.angular_search_window_deg),
                                                       rt.branch_depth, rt.translation_delta_cost_weight,
@@ -86,7 +93,59 @@ class LocalSlam:
         self.num_matched = 0
         self.num_inserted = 0
         self.num_escalated = 0
+        self.num_recovery_searches = 0
+        self.num_recovered = 0
+        self.num_untrusted = 0
+        self.num_forced = 0
+        self.untrusted_in_a_row = 0
         self.scores: list[float] = []
+        self.recent_scores: deque[float] = deque(maxlen=RECENT_SCORES)
+        w = rt.recovery_linear_window
+        depth = min(6, max(1, math.ceil(math.log2(2 * math.ceil(w / cfg.grid.resolution) + 1)) - 1))
+        self.wide_matcher = RealTimeCorrelativeScanMatcher(w, math.radians(rt.recovery_angular_window_deg), depth,
+                                                           rt.translation_delta_cost_weight, rt.rotation_delta_cost_weight)
+
+    def windows(self, motion) -> tuple[float, float]:
+        """Search half-widths (m, rad) from the predicted motion: the prediction's error grows with
+        the distance and the angle travelled since the last scan."""
+        rt = self.cfg.real_time_matcher
+        d = math.hypot(motion[0], motion[1])
+        lin = rt.min_linear_search_window + rt.window_motion_fraction * d
+        ang = (math.radians(rt.min_angular_search_window_deg) + rt.window_motion_fraction * abs(motion[2])
+               + math.radians(rt.window_angle_per_metre_deg) * d)
+        return lin, ang
+
+    def _typical_score(self) -> float | None:
+        return float(np.median(self.recent_scores)) if len(self.recent_scores) >= MIN_SCORES_FOR_TRUST else None
+
+    def _recover(self, grid, scan, predicted, points):
+        """Branch-and-bound over the recovery windows around every distinct prediction; the best match."""
+        hyps = [predicted]
+        ex = self.extrapolator
+        if ex.last_pose is not None:
+            hyps += [ex.predict(scan.timestamp, None), ex.last_pose]  # constant velocity, no motion
+        best = None
+        tried = []
+        for h in hyps:
+            if any(math.hypot(h[0] - t[0], h[1] - t[1]) < grid.resolution and abs(math.remainder(h[2] - t[2], 2 * math.pi)) < 1e-3
+                   for t in tried):
+                continue
+            tried.append(h)
+            m = self.wide_matcher.match(grid, h, points)
+            if m is not None and (best is None or m.score > best.score):
+                best = m
+        if best is None:
+            return None
+        # the score surface around the recovered peak: margin and covariance, as for a normal match
+        around = self.matcher._match(grid, best.pose, points, 0.0, 2 * grid.resolution, 2 * self._angular_step(grid, points))
+        around.escalated = True
+        return around
+
+    @staticmethod
+    def _angular_step(grid, points):
+        from slam2d.matching.search import SearchParameters
+
+        return SearchParameters.make(0.0, 0.0, grid.resolution, points).angular_step
 
     def add_scan(self, scan) -> MatchingResult:
         timings = {}
@@ -97,31 +156,59 @@ class LocalSlam:
         pose = predicted
         score = None
         kept_match = None
+        match = None
+        quality = "unmatched"
         submap = self.submaps.matching_submap
         if submap is not None and len(points) >= 3:
             grid = submap.match_grid()
             t1 = time.perf_counter()
             rt = self.cfg.real_time_matcher
-            motion = self.extrapolator.motion(predicted)
-            lin = rt.min_linear_search_window + rt.window_motion_fraction * math.hypot(motion[0], motion[1])
-            ang = math.radians(rt.min_angular_search_window_deg) + rt.window_motion_fraction * abs(motion[2])
+            lin, ang = self.windows(self.extrapolator.motion(predicted))
             m = self.matcher.match(grid, predicted, points, linear_window=lin, angular_window=ang)
+            typical = self._typical_score()
+            limit = None if typical is None else rt.min_relative_score * typical
+            if m is None or m.on_edge or (limit is not None and m.score < limit):
+                # not trusted: search wide around every prediction (Olson 2009's exhaustive search made
+                # cheap by branch-and-bound, Hess et al. 2016 Sec. V-C)
+                t_rec = time.perf_counter()
+                wide = self._recover(grid, scan, predicted, points)
+                timings["recovery"] = (time.perf_counter() - t_rec) * 1e3
+                self.num_recovery_searches += 1
+                if wide is not None and (m is None or wide.score > m.score):
+                    m = wide
+                    self.num_recovered += 1
             t2 = time.perf_counter()
             timings["match"] = (t2 - t1) * 1e3
             if m is not None:
-                pose, score = m.pose, m.score
-                match = m
-                if self.cfg.refine.enabled:
-                    r = self.cfg.refine
-                    pose, _ = refine(submap.probability_grid(), pose, points, r.occupied_space_weight, r.translation_weight, r.rotation_weight,
-                                     r.max_iterations)
-                    timings["refine"] = (time.perf_counter() - t2) * 1e3
-                self.num_matched += 1
-                self.num_escalated += m.escalated
-                self.scores.append(score)
+                trusted = limit is None or m.score >= limit
+                if trusted or self.untrusted_in_a_row >= rt.max_untrusted_in_a_row:
+                    pose, score, match = m.pose, m.score, m
+                    if self.cfg.refine.enabled:
+                        r = self.cfg.refine
+                        pose, _ = refine(submap.probability_grid(), pose, points, r.occupied_space_weight, r.translation_weight,
+                                         r.rotation_weight, r.max_iterations)
+                        timings["refine"] = (time.perf_counter() - t2) * 1e3
+                    self.num_matched += 1
+                    self.num_escalated += m.escalated
+                    self.scores.append(score)
+                    quality = "trusted" if trusted else "forced"
+                    if trusted:
+                        self.recent_scores.append(score)
+                        self.untrusted_in_a_row = 0
+                    else:  # several in a row: new ground rather than a failed match; map it
+                        self.num_forced += 1
+                        self.untrusted_in_a_row = 0
+                else:
+                    quality = "untrusted"
+            else:
+                quality = "untrusted"
+            if quality == "untrusted":  # carry on from the prediction; nothing goes into the submaps
+                self.num_untrusted += 1
+                self.untrusted_in_a_row += 1
+                score = None if m is None else m.score
         pose = np.array([pose[0], pose[1], math.remainder(pose[2], 2 * math.pi)])
         self.extrapolator.add(scan.timestamp, pose, scan.odom_pose)
-        inserted = not self.filter.is_similar(scan.timestamp, pose)
+        inserted = quality != "untrusted" and not self.filter.is_similar(scan.timestamp, pose)
         finished = []
         inserted_into = []
         if inserted:
@@ -129,7 +216,7 @@ class LocalSlam:
             local = rd.transformed(pose)
             finished = self.submaps.insert(pose, local.origin, local.hits, local.misses, scan.index)
             inserted_into = self.submaps.last_inserted_into
-            if score is not None:
+            if quality == "trusted":
                 kept_match = match
             self.finished_submaps.extend(finished)
             self.num_inserted += 1
@@ -137,7 +224,7 @@ class LocalSlam:
         timings["total"] = (time.perf_counter() - t0) * 1e3
         return MatchingResult(scan.timestamp, pose, rd, inserted, score, timings,
                               active_submap=self.submaps.matching_submap, finished_submaps=finished,
-                              inserted_into=inserted_into, match=kept_match, points=points)
+                              inserted_into=inserted_into, match=kept_match, points=points, quality=quality)
 
     def all_submaps(self):
         return list(self.finished_submaps) + list(self.submaps.submaps)
@@ -146,6 +233,8 @@ class LocalSlam:
         s = np.asarray(self.scores) if self.scores else np.zeros(1)
         return {"local_slam": {"matched_scans": self.num_matched, "inserted_scans": self.num_inserted,
                                "wide_searches": self.num_escalated,
+                               "recovery_searches": self.num_recovery_searches, "recovered": self.num_recovered,
+                               "untrusted": self.num_untrusted, "inserted_untrusted": self.num_forced,
                                "submaps": self.submaps.count, "finished_submaps": len(self.finished_submaps),
                                "score_mean": round(float(s.mean()), 4), "score_p5": round(float(np.percentile(s, 5)), 4)}}
 

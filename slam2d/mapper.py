@@ -35,6 +35,7 @@ class MatchingResult:
     inserted_into: list = field(default_factory=list)     # (submap index, submap local pose) it went into
     match: object = None                  # the correlative match of an inserted scan
     points: np.ndarray | None = None      # the filtered points that were matched (tracking frame)
+    quality: str = "unmatched"            # trusted | forced (inserted after several untrusted) | untrusted | unmatched
 
     @property
     def covariance(self) -> np.ndarray | None:

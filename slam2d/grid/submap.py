@@ -2,12 +2,16 @@
 
 A new submap starts every ``num_range_data`` insertions; each scan goes into both active
 submaps; the older one is finished (frozen) after ``2 × num_range_data`` insertions, as in
-Cartographer's ``ActiveSubmaps2D``. Local matching uses the older active submap, which
+Cartographer's ``ActiveSubmaps2D``. A count alone ties a submap's extent to the scan rate:
+a sparse log (scans a metre apart) would grow submaps five times the size of a dense one,
+with five times the drift inside and the memory. So a submap is also full once the robot
+travelled ``max_travel`` metres since it started (path length of the inserted poses). Local matching uses the older active submap, which
 always holds more data. A submap's grid is axis-aligned in the local frame; its
 ``local_pose`` is the tracking pose of the scan that started it.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -22,6 +26,7 @@ class Submap:
     local_pose: np.ndarray
     grid: ProbabilityGrid
     num_range_data: int = 0
+    travel: float = 0.0  # path length of the poses inserted since it started [m]
     finished: bool = False
     node_indices: list = field(default_factory=list)
 
@@ -47,24 +52,35 @@ class Submap:
 
 
 class ActiveSubmaps:
-    def __init__(self, grid_cfg, num_range_data: int, field_sigma: float | None = None):
+    def __init__(self, grid_cfg, num_range_data: int, field_sigma: float | None = None, max_travel: float = math.inf):
         self.grid_cfg = grid_cfg
         self.field_sigma = field_sigma
         self.num_range_data = num_range_data
+        self.max_travel = max_travel
         self.submaps: list[Submap] = []  # active ones, oldest first
         self.count = 0
+        self._last_pose = None
+
+    def _full(self, s: Submap) -> bool:
+        return s.num_range_data >= self.num_range_data or s.travel >= self.max_travel
 
     def insert(self, local_pose, origin, hits, misses, node_index: int) -> list[Submap]:
         """Insert range data (local frame) into the active submaps; returns submaps finished by it."""
-        if not self.submaps or self.submaps[-1].num_range_data == self.num_range_data:
+        if not self.submaps or self._full(self.submaps[-1]):
             self._add(local_pose)
+        step = 0.0 if self._last_pose is None else math.hypot(local_pose[0] - self._last_pose[0],
+                                                               local_pose[1] - self._last_pose[1])
+        self._last_pose = (float(local_pose[0]), float(local_pose[1]))
         finished = []
         self.last_inserted_into = [(s.index, s.local_pose) for s in self.submaps]
         insert_scan([s.grid for s in self.submaps], origin, hits, misses)
         for s in self.submaps:
+            if s.num_range_data:
+                s.travel += step
             s.num_range_data += 1
             s.node_indices.append(node_index)
-        if self.submaps[0].num_range_data == 2 * self.num_range_data:
+        # the older submap is finished when the newer one is full (with counts alone: after 2 × N)
+        if len(self.submaps) == 2 and self._full(self.submaps[1]):
             old = self.submaps.pop(0)
             old.finish()
             finished.append(old)

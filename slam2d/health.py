@@ -1,0 +1,93 @@
+"""Map health: is the result trustworthy, judged from the run itself (no ground truth needed).
+
+Two kinds of evidence:
+
+* **Agreement with the final map.** A consistent map holds each wall where every scan that
+  saw it puts it: the wall's cells collect hits from many scans and stay occupied. Where
+  poses are wrong, one scan's wall lies where other scans' rays passed, so its cells end up
+  free. Each node's hits are looked up in the final map (a cell or its 8 neighbours more
+  likely occupied than free); a scan agrees when most of its hits do. This is the map-
+  consistency idea of scan-to-map likelihood checks (e.g. Olson 2009, Sec. IV's score, here on
+  the final map rather than a submap).
+* **What local and global SLAM said along the way**: matches that could not be trusted,
+  recovery searches, loop constraints the optimizer had to remove.
+
+``status`` is OK, WARN or BROKEN; ``reasons`` says why when it is not OK.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+#: a scan agrees with the map when at least this share of its hits lies on occupied cells
+SCAN_AGREEMENT = 0.5
+#: shares of scans that agree below which the map is flagged
+WARN_AGREEING, BROKEN_AGREEING = 0.9, 0.75
+#: shares of matched scans that were not trusted above which the map is flagged
+WARN_UNTRUSTED, BROKEN_UNTRUSTED = 0.01, 0.05
+
+
+def point_agreement(grid, nodes, poses) -> np.ndarray:
+    """Per node, the share of its hits (at ``poses[scan_index]``) on occupied map cells (3 × 3 neighbourhood)."""
+    from scipy.ndimage import maximum_filter
+
+    if not nodes or grid.prob.size == 0:
+        return np.zeros(0)
+    occ = maximum_filter(grid.probability(unknown_value=0.0) > 0.5, size=3, mode="constant", cval=False)
+    rows, cols = occ.shape
+    out = np.empty(len(nodes))
+    inv = 1.0 / grid.resolution
+    for k, n in enumerate(nodes):
+        if len(n.hits) == 0:
+            out[k] = 1.0
+            continue
+        x, y, t = poses[n.scan_index]
+        c, s = np.cos(t), np.sin(t)
+        px = x + c * n.hits[:, 0] - s * n.hits[:, 1]
+        py = y + s * n.hits[:, 0] + c * n.hits[:, 1]
+        ci = np.floor((px - grid.origin[0]) * inv).astype(np.int64)
+        ri = np.floor((py - grid.origin[1]) * inv).astype(np.int64)
+        inside = (ci >= 0) & (ci < cols) & (ri >= 0) & (ri < rows)
+        ok = np.zeros(len(px), dtype=bool)
+        ok[inside] = occ[ri[inside], ci[inside]]
+        out[k] = ok.mean()
+    return out
+
+
+def assess(grid, nodes, poses, local: dict | None = None, loops: dict | None = None) -> dict:
+    """The ``health`` section of summary.json. ``local``/``loops``: the ``local_slam`` and
+    ``loop_closure`` sections (absent for odometry-only runs or local SLAM alone)."""
+    agree = point_agreement(grid, nodes, poses)
+    share = float((agree >= SCAN_AGREEMENT).mean()) if agree.size else 1.0
+    out = {"scans_checked": int(agree.size), "scans_agreeing_with_map": round(share, 4),
+           "mean_point_agreement": round(float(agree.mean()), 4) if agree.size else None}
+    reasons, level = [], 0
+    if share < BROKEN_AGREEING:
+        level = 2
+        reasons.append(f"only {100 * share:.0f} % of scans agree with the final map (double walls: poses are wrong somewhere)")
+    elif share < WARN_AGREEING:
+        level = 1
+        reasons.append(f"{100 * (1 - share):.0f} % of scans disagree with the final map")
+    if local:
+        matched = local.get("matched_scans", 0) + local.get("untrusted", 0)
+        untrusted = local.get("untrusted", 0) / matched if matched else 0.0
+        out.update({"untrusted_match_share": round(untrusted, 4), "recovery_searches": local.get("recovery_searches", 0),
+                    "recovered": local.get("recovered", 0), "inserted_untrusted": local.get("inserted_untrusted", 0)})
+        if untrusted > BROKEN_UNTRUSTED:
+            level = 2
+            reasons.append(f"{100 * untrusted:.1f} % of scans could not be matched with confidence")
+        elif untrusted > WARN_UNTRUSTED:
+            level = max(level, 1)
+            reasons.append(f"{100 * untrusted:.1f} % of scans could not be matched with confidence")
+    if loops:
+        acc = loops.get("accepted", 0)
+        out.update({"loop_constraints_in_final_graph": loops.get("in_final_graph", 0),
+                    "loop_constraints_removed": loops.get("removed_after_optimization", 0)})
+        if acc and loops.get("in_final_graph", 0) == 0:
+            level = max(level, 1)
+            reasons.append("every accepted loop constraint was removed by the optimizer")
+    out["status"] = ("OK", "WARN", "BROKEN")[level]
+    out["reasons"] = reasons
+    return out
+
+
+__all__ = ["assess", "point_agreement"]
