@@ -19,7 +19,8 @@ Generated logs go to a cache folder outside the repository (`--cache`, default
 `$XDG_CACHE_HOME/slam2d-benchmark` or `~/.cache/slam2d-benchmark`), in a subfolder keyed on the
 seed and the generating tool's sha256, and are made again only when missing.
 The Karto peer (`--peers`) runs beside slam2d on every CARMEN FLASER log (relations, degraded,
-sparse); it cannot read fr-clinic's ROBOTLASER1 records.
+sparse); it cannot read fr-clinic's ROBOTLASER1 records. `bench_logs.py` makes and caches the
+generated logs, `bench_tables.py` writes the tables.
 
 Each run is a whole `slam2d run` process: wall time and peak memory are what the OS
 reports for it (os.wait4). Numba's cache is warmed by a short run first, so compile time
@@ -30,12 +31,9 @@ is not counted. Accuracy is the relations metric (Kümmerle et al. 2009) on the 
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import os
 import platform
-import re
-import shutil
 import subprocess
 import sys
 import time
@@ -45,19 +43,14 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+sys.path.insert(0, str(ROOT / "tools"))
+
+from bench_logs import corrected_logs, default_cache, degraded_log, sparse_log  # noqa: E402
+from bench_tables import TARGETS, clinic_table, degraded_table, sparse_table, table  # noqa: E402
+
 SHARED = ROOT.parent / "shared"
-CARTOGRAPHER = {  # Hess et al. 2016: Table II (abs trans m, abs rot deg, mean ± std), Table V (wall s)
-    "aces": {"trans": (0.0375, 0.0426), "rot": (0.373, 0.469), "wall_s": 41},
-    "intel": {"trans": (0.0229, 0.0239), "rot": (0.453, 1.335), "wall_s": 179},
-    "fr079": {"trans": (0.0452, 0.0354), "rot": (0.538, 0.718), "wall_s": 62},
-}
 REFERENCE_LOGS = {"intel": "intel.gfs.log", "aces": "aces-corrected.log.gz", "fr079": "freiburg-079-corrected.log.gz"}
 SUITES = ("relations", "degraded", "sparse", "clinic")
-TARGETS = {  # issue 11, "What it must show"
-    "degraded_trans_m": {n: c["trans"][0] for n, c in CARTOGRAPHER.items()},  # Cartographer on the clean log
-    "sparse_ate_rmse_m": 0.15,
-    "clinic": {"peak_rss_mb": 1024.0, "wall_s": 60.0, "health": "OK"},
-}
 LOOP_TOLERANCE = (0.3, 2.0)  # m, deg: slam2d eval loops --ground-truth defaults
 
 
@@ -88,66 +81,6 @@ def _median_run(runs: list[dict]) -> dict:
     pick = dict(sorted(ok, key=lambda r: r["wall_s"])[len(ok) // 2])
     pick["peak_rss_mb"] = max(r["peak_rss_mb"] for r in ok)
     return pick
-
-
-def default_cache() -> Path:
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "slam2d-benchmark"
-
-
-def _sha(path: Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:12]
-
-
-def cached(cache: Path, tool: Path, seed: int, name: str, source: Path, make) -> Path:
-    """The folder ``cache/<tool>-seed<seed>-<tool sha256>/<name>``, filled by ``make(folder)`` when it
-    is missing (or was made from a different source file) and reused otherwise."""
-    d = Path(cache) / f"{tool.stem}-seed{seed}-{_sha(tool)}" / name
-    st = Path(source).stat()
-    key = {"tool": str(tool), "seed": seed, "source": str(source), "source_size": st.st_size,
-           "source_mtime": st.st_mtime}
-    done = d / "DONE.json"
-    if done.exists() and json.loads(done.read_text()) == key:
-        return d
-    tmp = d.with_name(d.name + ".partial")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    make(tmp)
-    (tmp / "DONE.json").write_text(json.dumps(key))
-    shutil.rmtree(d, ignore_errors=True)
-    os.replace(tmp, d)
-    return d
-
-
-def _tool(cmd: list) -> None:
-    r = subprocess.run([sys.executable, *map(str, cmd)], capture_output=True, text=True)
-    if r.returncode != 0:
-        raise SystemExit(f"benchmark: {' '.join(map(str, cmd))} failed: {r.stderr.strip()}")
-
-
-def degraded_log(args, name: str) -> Path:
-    """``degrade.py IN OUT --seed 1`` (its default odometry model) of a relations log, cached."""
-    tool = args.shared / "tools" / "degrade.py"
-    log = args.shared / "datasets" / name / f"{name}.clf.bz2"
-    d = cached(args.cache, tool, args.degrade_seed, name, log,
-               lambda tmp: _tool([tool, log, tmp / f"{name}.clf", "--seed", args.degrade_seed]))
-    return d / f"{name}.clf"
-
-
-def corrected_logs(datasets: Path) -> list[tuple[str, Path]]:
-    """(dataset folder name, path) of every GMapping-corrected log under ``datasets``."""
-    pat = re.compile(r"(\.gfs\.log|-corrected\.log(\.gz)?)$")
-    return sorted((p.parent.name, p) for p in datasets.rglob("*") if p.is_file() and pat.search(p.name))
-
-
-def sparse_log(args, name: str, corrected: Path) -> tuple[Path, Path]:
-    """(NAME.clf, NAME.gt.txt) that ``make_sparse.py OUTDIR LOG --seed 7`` writes, cached."""
-    tool = args.shared / "tools" / "make_sparse.py"
-    d = cached(args.cache, tool, args.sparse_seed, name, corrected,
-               lambda tmp: _tool([tool, tmp, corrected, "--seed", args.sparse_seed]))
-    clf, gt = sorted(d.glob("*.clf")), sorted(d.glob("*.gt.txt"))
-    if len(clf) != 1 or len(gt) != 1:
-        raise SystemExit(f"benchmark: {d}: expected one .clf and one .gt.txt from make_sparse.py")
-    return clf[0], gt[0]
 
 
 def run_log(label: str, log: Path, args, outdir: Path, peer: bool = True) -> dict:
@@ -284,118 +217,6 @@ def bench_dataset(name: str, args, outdir: Path) -> dict:
             row["slam2d"]["ate_vs_corrected_log"] = json.loads(a.stdout)["ate"]
             row.setdefault("plots", []).extend([plot.name, plot.with_name(plot.stem + "_error.png").name])
     return row
-
-
-def fmt(ms):
-    return f"{ms[0]:.4f} ± {ms[1]:.4f}"
-
-
-def loops_txt(s) -> str:
-    lc = s.get("loop_closure") or {}
-    return f"{lc.get('accepted', '—')} / {lc.get('in_final_graph', '—')} / {lc.get('candidates_searched', '—')}" if lc else "—"
-
-
-def health_txt(s) -> str:
-    h = s.get("health")
-    return str(h.get("status", "?")) if isinstance(h, dict) else "—"
-
-
-def _rel(m) -> str:
-    return f"{fmt((m['abs_trans_m']['mean'], m['abs_trans_m']['std']))} | {m['abs_rot_deg']['mean']:.3f} ± {m['abs_rot_deg']['std']:.3f}"
-
-
-def _pct(p) -> str:
-    """'100.0 % of 12' from a precision record of slam2d.eval.loops; '— of 0' when none was judged."""
-    n = p["true"] + p["false"]
-    return f"{100 * p['precision']:.1f} % of {n}" if p["precision"] is not None else "— of 0"
-
-
-def _met(ok) -> str:
-    return "—" if ok is None else ("yes" if ok else "**no**")
-
-
-def table(rows, args) -> str:
-    lines = ["| dataset | system | scans | data s | wall s | real-time × | peak RSS MB | trans abs m (mean ± std) | rot abs ° (mean ± std) | loops accepted / final / searched | precision (final graph) | health |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    for row in rows:
-        n = row["dataset"]
-        s = row["slam2d"]
-        lo = row.get("loops")
-        prec = "—"
-        if lo:
-            own = lo["own"]["final_graph"]["precision"]
-            prec = f"{100 * own:.1f} % own" if own is not None else "—"
-            refp = lo.get("reference", {}).get("final_graph", {}).get("precision")
-            if refp is not None:
-                prec += f", {100 * refp:.1f} % ref"
-        lines.append(f"| {n} | slam2d ({s['mode']}) | {s['scans']} | {s['duration_s']:.1f} | {s['wall_s']:.1f} | "
-                     f"{s['real_time_factor']:.1f} | {s['peak_rss_mb']:.0f} | {_rel(s['relations'])} | "
-                     f"{loops_txt(s)} | {prec} | {health_txt(s)} |")
-        if "karto" in row and "relations" in row["karto"]:
-            k = row["karto"]
-            lines.append(f"| {n} | Karto peer (sequential) | {s['scans']} | {s['duration_s']:.1f} | {k['wall_s']:.1f} | "
-                         f"{s['duration_s'] / k['wall_s']:.1f} | {k['peak_rss_mb']:.0f} | {_rel(k['relations'])} | — | — | |")
-        om = row["odometry"]["relations"]
-        lines.append(f"| {n} | raw odometry | {s['scans']} | | | | | {_rel(om)} | | | |")
-        c = CARTOGRAPHER.get(n)
-        if c:
-            lines.append(f"| {n} | Cartographer (published, 6-core Xeon) | | | {c['wall_s']} | | | {fmt(c['trans'])} | "
-                         f"{c['rot'][0]:.3f} ± {c['rot'][1]:.3f} | | | |")
-    return "\n".join(lines)
-
-
-def degraded_table(rows) -> str:
-    lines = ["| dataset (degraded) | system | scans | wall s | peak RSS MB | trans abs m (mean ± std) | rot abs ° (mean ± std) | target: trans ≤ Cartographer clean | met | loops accepted / final / searched | health |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
-    for row in rows:
-        n, s = row["dataset"], row["slam2d"]
-        target = TARGETS["degraded_trans_m"].get(n)
-        met = None if target is None else s["relations"]["abs_trans_m"]["mean"] <= target
-        tt = f"{target:.4f} m" if target is not None else "—"
-        lines.append(f"| {n} | slam2d ({s['mode']}) | {s['scans']} | {s['wall_s']:.1f} | {s['peak_rss_mb']:.0f} | "
-                     f"{_rel(s['relations'])} | {tt} | {_met(met)} | {loops_txt(s)} | {health_txt(s)} |")
-        k = row.get("karto", {})
-        if "relations" in k:
-            kmet = None if target is None else k["relations"]["abs_trans_m"]["mean"] <= target
-            lines.append(f"| {n} | Karto peer (sequential) | {s['scans']} | {k['wall_s']:.1f} | {k['peak_rss_mb']:.0f} | "
-                         f"{_rel(k['relations'])} | {tt} | {_met(kmet)} | — | |")
-    return "\n".join(lines)
-
-
-def sparse_table(rows) -> str:
-    target = TARGETS["sparse_ate_rmse_m"]
-    lines = [f"| dataset (sparse) | system | scans | wall s | peak RSS MB | ATE RMSE m | target ≤ {target} m | met | loops accepted / final / searched | loop precision vs ground truth, final graph (all accepted) | recall (revisit episodes closed) | health |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    for row in rows:
-        n, s = row["dataset"], row["slam2d"]
-        rmse = s["ate"]["trans_m"]["rmse"]
-        g = s.get("loops_vs_ground_truth")
-        prec = rec = "—"
-        if g:
-            prec = f"{_pct(g['final_graph'])} ({_pct(g['accepted'])})"
-            rc = g["recall"]
-            rec = f"{rc['closed']} of {rc['episodes']}"
-        lines.append(f"| {n} | slam2d ({s['mode']}) | {s['scans']} | {s['wall_s']:.1f} | {s['peak_rss_mb']:.0f} | "
-                     f"{rmse:.3f} | ≤ {target} | {_met(rmse <= target)} | {loops_txt(s)} | {prec} | {rec} | {health_txt(s)} |")
-        k = row.get("karto", {})
-        if "ate" in k:
-            kr = k["ate"]["trans_m"]["rmse"]
-            lines.append(f"| {n} | Karto peer (sequential) | {s['scans']} | {k['wall_s']:.1f} | {k['peak_rss_mb']:.0f} | "
-                         f"{kr:.3f} | ≤ {target} | {_met(kr <= target)} | — | — | — | |")
-    return "\n".join(lines)
-
-
-def clinic_table(rows) -> str:
-    t = TARGETS["clinic"]
-    lines = [f"| dataset | scans | data s | wall s (target ≤ {t['wall_s']:.0f}) | peak RSS MB (target ≤ {t['peak_rss_mb']:.0f}) | loops accepted / final / searched | health (target {t['health']}) | met |",
-             "|---|---|---|---|---|---|---|---|"]
-    for row in rows:
-        s = row["slam2d"]
-        h = health_txt(s)
-        met = s["wall_s"] <= t["wall_s"] and s["peak_rss_mb"] <= t["peak_rss_mb"] and h == t["health"]
-        lines.append(f"| {row['dataset']} | {s['scans']} | {s['duration_s']:.1f} | {s['wall_s']:.1f} | {s['peak_rss_mb']:.0f} | "
-                     f"{loops_txt(s)} | {h} | {_met(met)} |")
-    return "\n".join(lines)
 
 
 def main(argv=None) -> int:
