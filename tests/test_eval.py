@@ -193,3 +193,110 @@ def test_eval_bad_inputs_are_one_line(tmp_path):
     (tmp_path / "c" / "constraints.jsonl").write_text("{not json\n")
     r = slam2d("eval", "loops", tmp_path / "c")
     assert r.returncode != 0 and "constraints.jsonl:1" in r.stderr and r.stderr.count("\n") == 1
+
+
+def _gt_run(tmp_path, stamps=None):
+    """A run whose own poses are wrong after scan 200 (a 1 m shift), its ground truth, and
+    constraints whose truth is known: true, false, and one that agrees with the wrong own poses."""
+    n = 400
+    gt = np.column_stack([np.cos(np.arange(n) / 40) * 5, np.sin(np.arange(n) / 40) * 5, np.arange(n) / 40 + math.pi / 2])
+    own = gt.copy()
+    own[200:, 0] += 1.0
+    stamps = [f"{1e9 + 0.5 * i:.6f}" for i in range(n)] if stamps is None else stamps
+    write_tum(tmp_path / "trajectory.txt", stamps, own)
+    cases = [  # (from, to, offset, in_final_graph, truly true)
+        (10, 260, [0.0, 0.0, 0.0], True, True),                      # exact
+        (20, 270, [0.2, 0.1, math.radians(1.5)], True, True),        # inside 0.3 m / 2°
+        (30, 280, [0.35, 0.0, 0.0], True, False),                    # 0.35 m off
+        (40, 290, [0.0, 0.0, math.radians(2.5)], True, False),       # 2.5° off
+        (50, 300, [0.0, 0.0, 0.0], False, True),                     # true but removed from the graph
+        (60, 310, [1.0, 0.0, 0.0], False, False),                    # false, removed
+    ]
+    with open(tmp_path / "constraints.jsonl", "w") as f:
+        for i, j, off, final, _ in cases:
+            rel = between(gt[i], gt[j]) + off
+            f.write(json.dumps({"submap": 0, "from_scan": i, "to_scan": j, "from_stamp": stamps[i], "to_stamp": stamps[j],
+                                "relative_pose": list(map(float, rel)), "score": 0.7, "accepted": True,
+                                "reason": "accepted", "in_final_graph": final}) + "\n")
+        # false against the ground truth, but the run's own (wrong) poses agree with it exactly
+        rel = between(own[100], own[350])
+        f.write(json.dumps({"submap": 1, "from_scan": 100, "to_scan": 350, "relative_pose": list(map(float, rel)),
+                            "score": 0.9, "accepted": True, "reason": "accepted", "in_final_graph": True}) + "\n")
+        f.write(json.dumps({"submap": 1, "from_scan": 100, "to_scan": 360, "relative_pose": None, "score": None,
+                            "accepted": False, "reason": "no match", "in_final_graph": False}) + "\n")
+    truth = [c[4] for c in cases] + [False, None]
+    return gt, own, truth
+
+
+def test_loops_ground_truth_classifies_exactly(tmp_path):
+    from slam2d.eval.loops import classify_ground_truth
+
+    gt, own, truth = _gt_run(tmp_path)
+    cs = read_constraints(tmp_path / "constraints.jsonl")
+    classify(cs, own, None, None)
+    out = classify_ground_truth(cs, gt, np.arange(len(gt)), 0.3, 2.0)
+    assert [c["true_gt"] for c in cs] == truth
+    assert cs[6]["true_own"] is True and cs[6]["true_gt"] is False  # own check fooled, ground truth not
+    assert out["final_graph"] == {"true": 2, "false": 3, "unknown": 0, "precision": 0.4}
+    assert out["accepted"] == {"true": 3, "false": 4, "unknown": 0, "precision": 3 / 7}
+    # the circle of radius 5 m is 31 m round: scans ~250 onwards revisit the start
+    assert out["recall"]["episodes"] >= 1 and out["recall"]["closed"] >= 1
+    # a looser tolerance turns the 0.35 m and 2.5° ones true
+    assert classify_ground_truth(cs, gt, np.arange(len(gt)), 0.4, 3.0)["final_graph"]["true"] == 4
+
+
+def test_loops_cli_ground_truth_in_scan_order_and_by_timestamp(tmp_path):
+    gt, _, _ = _gt_run(tmp_path)
+    n = len(gt)
+    stamps = [f"{1e9 + 0.5 * i:.6f}" for i in range(n)]
+    # the same count: matched in scan order, whatever the stamps say
+    write_tum(tmp_path / "order.gt.txt", [f"{i}.0" for i in range(n)], gt)
+    r = slam2d("eval", "loops", tmp_path, "--ground-truth", tmp_path / "order.gt.txt", "--json")
+    assert r.returncode == 0, r.stderr
+    g = json.loads(r.stdout)["ground_truth"]
+    assert g["matching"] == "scan_order" and g["matched_scans"] == n
+    assert g["final_graph"]["precision"] == pytest.approx(0.4) and g["tolerance"] == {"trans_m": 0.3, "rot_deg": 2.0}
+    # every other pose, shuffled: matched by timestamp; constraints on scans without a pose are unknown
+    keep = np.random.default_rng(0).permutation(np.arange(0, n, 2))
+    write_tum(tmp_path / "half.gt.txt", [stamps[i] for i in keep], gt[keep])
+    r = slam2d("eval", "loops", tmp_path, "--ground-truth", tmp_path / "half.gt.txt", "--json",
+               "--tolerance-trans", "0.4", "--tolerance-rot", "3")
+    assert r.returncode == 0, r.stderr
+    g = json.loads(r.stdout)["ground_truth"]
+    assert g["matching"] == "timestamp" and g["matched_scans"] == n // 2
+    # scans 10..60 and 260..310 are even; 350 too: only the loosened ones change
+    assert g["final_graph"] == {"true": 4, "false": 1, "unknown": 0, "precision": 0.8}
+    assert set(json.loads(r.stdout)) >= {"constraints", "accepted", "in_final_graph", "own", "ground_truth"}
+
+
+def test_loops_ground_truth_bad_inputs_are_one_line(tmp_path):
+    gt, _, _ = _gt_run(tmp_path)
+    lines = [f"{1e9 + 0.5 * i:.6f} {p[0]} {p[1]} 0 0 0 0 1\n" for i, p in enumerate(gt)]
+    lines[7] = "1000000003.5 1.0 2.0 0 0 0\n"
+    (tmp_path / "bad.gt.txt").write_text("".join(lines))
+    r = slam2d("eval", "loops", tmp_path, "--ground-truth", tmp_path / "bad.gt.txt")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "bad.gt.txt:8" in r.stderr
+    (tmp_path / "far.gt.txt").write_text("5.0 0 0 0 0 0 0 1\n6.0 0 0 0 0 0 0 1\n")
+    r = slam2d("eval", "loops", tmp_path, "--ground-truth", tmp_path / "far.gt.txt")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "far.gt.txt" in r.stderr and "timestamp" in r.stderr
+    r = slam2d("eval", "loops", tmp_path, "--ground-truth", tmp_path / "missing.gt.txt")
+    assert r.returncode == 2 and "missing.gt.txt: no such file" in r.stderr
+    # constraints from another run: their stamps are not the trajectory's
+    (tmp_path / "o").mkdir()
+    write_tum(tmp_path / "o" / "trajectory.txt", [f"{i}.0" for i in range(len(gt))], gt)
+    (tmp_path / "o" / "constraints.jsonl").write_text((tmp_path / "constraints.jsonl").read_text())
+    r = slam2d("eval", "loops", tmp_path / "o")
+    assert r.returncode == 2 and "constraints.jsonl:1" in r.stderr and r.stderr.count("\n") == 1
+
+
+def test_loops_ground_truth_of_the_simulator(tmp_path):
+    from conftest import BUNDLED
+
+    run = tmp_path / "sim"
+    r = slam2d("run", BUNDLED, "--out", run, "--no-progress")
+    assert r.returncode == 0, r.stderr
+    r = slam2d("eval", "loops", run, "--ground-truth", BUNDLED, "--json")
+    assert r.returncode == 0, r.stderr
+    g = json.loads(r.stdout)["ground_truth"]
+    assert g["matching"] == "mcap_scan_index" and g["matched_scans"] == json.loads((run / "summary.json").read_text())["scans"]
+    assert g["final_graph"]["unknown"] == 0 and g["recall"]["episodes"] >= 1

@@ -1,9 +1,12 @@
 """tools/spread.py: run 0 is the plain local-SLAM run; the rotated runs are real, different samples."""
+import argparse
+import json
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from slam2d.eval.relations import read_relations, relations_metric
 from slam2d.geometry import between
@@ -39,3 +42,123 @@ def test_spread_run_zero_equals_the_cli_and_rotations_are_null_changes(tmp_path)
     assert abs(values[0] - expected) < 5e-5  # printed to 4 decimals
     # rotating the world is invisible to the metric, so every run must still track the truth
     assert max(values) < 0.1 and max(values) > 0.0
+
+
+def _fake_shared(tmp_path, every=6, count=100):
+    """A tiny ../shared: one relations dataset, one corrected log, one fr-clinic log, all made from the
+    simulator's front 180 beams (FLASER geometry: -90° + i·1°), and the real tools beside them."""
+    import bz2
+    import gzip
+
+    tools = ROOT.parent / "shared" / "tools"
+    if not (tools / "make_sparse.py").exists():
+        pytest.skip(f"{tools} not found (../shared is not beside the repo)")
+    shared = tmp_path / "shared"
+    (shared / "datasets" / "tiny").mkdir(parents=True)
+    (shared / "datasets" / "sparse" / "corner").mkdir(parents=True)
+    (shared / "datasets" / "fr-clinic").mkdir(parents=True)
+    (shared / "tools").symlink_to(tools)
+    raw, corrected, gts, stamps = [], [], [], []
+    for k, s in enumerate(open_source(BUNDLED)):
+        if k % every or len(raw) == count:
+            continue
+        r = np.where(np.isfinite(s.ranges), s.ranges, 20.0)[90:270]
+        txt = " ".join(f"{v:.3f}" for v in r)
+        gt, odo = s.ground_truth, s.odom_pose
+        raw.append(f"FLASER 180 {txt} {odo[0]:.6f} {odo[1]:.6f} {odo[2]:.6f} {odo[0]:.6f} {odo[1]:.6f} {odo[2]:.6f} "
+                   f"{s.timestamp:.6f} sim {s.timestamp:.6f}\n")
+        corrected.append(f"FLASER 180 {txt} {gt[0]:.6f} {gt[1]:.6f} {gt[2]:.6f} {gt[0]:.6f} {gt[1]:.6f} {gt[2]:.6f} 0 sim 0\n")
+        gts.append(gt)
+        stamps.append(s.timestamp)
+    with bz2.open(shared / "datasets" / "tiny" / "tiny.clf.bz2", "wt") as f:
+        f.writelines(raw)
+    with bz2.open(shared / "datasets" / "fr-clinic" / "clinic_robotlaser.clf.bz2", "wt") as f:
+        f.writelines(raw)
+    with gzip.open(shared / "datasets" / "sparse" / "corner" / "corner-corrected.log.gz", "wt") as f:
+        f.writelines(corrected)
+    (shared / "datasets" / "sparse" / "corner" / "README.md").write_text("not a log\n")
+    with open(shared / "datasets" / "tiny" / "tiny.relations", "w") as f:
+        for i in range(0, len(gts) - 5, 3):
+            d = between(gts[i], gts[i + 5])
+            f.write(f"{stamps[i]:.6f} {stamps[i + 5]:.6f} {d[0]:.6f} {d[1]:.6f} 0 0 0 {d[2]:.6f}\n")
+    return shared
+
+
+def test_benchmark_finds_corrected_logs_and_caches_generated_ones(tmp_path):
+    sys.path.insert(0, str(ROOT / "tools"))
+    import benchmark
+
+    shared = _fake_shared(tmp_path)
+    found = benchmark.corrected_logs(shared / "datasets")
+    assert [(n, p.name) for n, p in found] == [("corner", "corner-corrected.log.gz")]
+    args = argparse.Namespace(shared=shared, cache=tmp_path / "cache", sparse_seed=7, degrade_seed=1)
+    clf, gt = benchmark.sparse_log(args, "corner", found[0][1])
+    assert tmp_path / "cache" in clf.parents and clf.name == "corner.clf" and gt.name == "corner.gt.txt"
+    t, poses, _ = read_tum(gt)
+    assert len(t) == 100 and t[1] - t[0] == 0.5
+    before = clf.stat().st_mtime_ns
+    assert benchmark.sparse_log(args, "corner", found[0][1]) == (clf, gt) and clf.stat().st_mtime_ns == before
+    args.sparse_seed = 8  # another seed: another cache folder, the first one kept
+    clf8, _ = benchmark.sparse_log(args, "corner", found[0][1])
+    assert clf8 != clf and clf.exists()
+    deg = benchmark.degraded_log(args, "tiny")
+    assert deg.exists() and deg.parent.parent.name.startswith("degrade-seed1-")
+    assert len(list(open_source(deg))) == 100
+
+
+def test_benchmark_runs_every_suite_on_tiny_logs(tmp_path):
+    shared = _fake_shared(tmp_path)
+    out = tmp_path / "bench"
+    r = subprocess.run([sys.executable, str(ROOT / "tools" / "benchmark.py"), "--shared", str(shared),
+                        "--cache", str(tmp_path / "cache"), "--out", str(out), "--markdown", str(tmp_path / "B.md"),
+                        "--json", str(tmp_path / "b.json"), "--peers"], capture_output=True, text=True, cwd=ROOT, timeout=900)
+    assert r.returncode == 0, r.stderr
+    md = (tmp_path / "B.md").read_text()
+    for heading in ("## Relations logs", "## Degraded odometry", "## Sparse logs", "## fr-clinic"):
+        assert heading in md
+    b = json.loads((tmp_path / "b.json").read_text())
+    assert [row["dataset"] for row in b["rows"]] == ["tiny"] and [row["dataset"] for row in b["degraded"]] == ["tiny"]
+    assert [row["dataset"] for row in b["clinic"]] == ["fr-clinic"]
+    sp = b["sparse"][0]["slam2d"]
+    assert b["sparse"][0]["dataset"] == "corner" and sp["ate"]["matching"] == "scan_order" and sp["ate"]["pairs"] == 100
+    assert set(sp["loops_vs_ground_truth"]) >= {"final_graph", "accepted", "recall", "tolerance"}
+    assert "| corner | slam2d" in md and "≤ 0.15" in md
+    for row in b["degraded"] + b["clinic"]:
+        assert row["slam2d"]["peak_rss_mb"] > 0 and row["slam2d"]["wall_s"] > 0
+    try:
+        import karto_scanmatcher  # noqa: F401
+    except ImportError:
+        pass
+    else:  # the peer runs beside slam2d on every FLASER log, never on fr-clinic
+        assert "relations" in b["degraded"][0]["karto"] and "ate" in b["sparse"][0]["karto"]
+        assert "karto" not in b["clinic"][0]
+    # the generated logs are in the cache, not in the output folder or the repository
+    assert list((tmp_path / "cache").glob("make_sparse-seed7-*/corner/corner.clf"))
+    assert list((tmp_path / "cache").glob("degrade-seed1-*/tiny/tiny.clf"))
+
+
+def test_benchmark_tables_show_health_and_targets():
+    sys.path.insert(0, str(ROOT / "tools"))
+    import benchmark
+
+    def row(wall, rss, health):
+        s = {"scans": 10, "duration_s": 100.0, "wall_s": wall, "peak_rss_mb": rss, "mode": "global",
+             "loop_closure": {"accepted": 5, "in_final_graph": 4, "candidates_searched": 9}}
+        if health is not None:
+            s["health"] = {"status": health, "share_agreeing": 0.97}
+        return {"dataset": "fr-clinic", "slam2d": s}
+
+    lines = benchmark.clinic_table([row(50.0, 800.0, "OK"), row(50.0, 800.0, "WARN"), row(50.0, 1500.0, "OK"),
+                                    row(50.0, 800.0, None)]).splitlines()[2:]
+    assert [line.split("|")[7].strip() for line in lines] == ["OK", "WARN", "OK", "—"]
+    assert [line.split("|")[8].strip() for line in lines] == ["yes", "**no**", "**no**", "**no**"]
+    assert all("5 / 4 / 9" in line for line in lines)
+    sparse = row(5.0, 300.0, "BROKEN")
+    sparse["dataset"] = "orebro"
+    sparse["slam2d"]["ate"] = {"trans_m": {"rmse": 0.12}}
+    sparse["slam2d"]["loops_vs_ground_truth"] = {
+        "final_graph": {"true": 3, "false": 1, "unknown": 0, "precision": 0.75},
+        "accepted": {"true": 3, "false": 2, "unknown": 0, "precision": 0.6}, "recall": {"episodes": 4, "closed": 2}}
+    line = benchmark.sparse_table([sparse]).splitlines()[2]
+    assert "| 0.120 | ≤ 0.15 | yes |" in line and "75.0 % of 4 (60.0 % of 5)" in line and "2 of 4" in line
+    assert line.rstrip().endswith("| BROKEN |")

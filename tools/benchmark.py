@@ -1,9 +1,26 @@
 #!/usr/bin/env python3
 """Benchmark slam2d on every dataset in ../shared/datasets and write BENCHMARKS.md + benchmarks.json.
 
-  python tools/benchmark.py                      # all datasets, default config
+  python tools/benchmark.py                      # every suite, default config
   python tools/benchmark.py --peers              # also run the Karto peer (../shared/tools/peer_karto.py)
   python tools/benchmark.py --datasets intel --jobs 2 --config configs/default.yaml
+  python tools/benchmark.py --suite sparse --datasets orebro,belgioioso
+
+Suites (issue 11), all in one run by default, `--suite` selects some:
+  relations  intel / aces / fr079, relations metric on the dataset's `.relations`;
+  degraded   the same logs with worse odometry (`../shared/tools/degrade.py IN OUT --seed 1`,
+             its defaults), scored on the original `.relations`;
+  sparse     `../shared/tools/make_sparse.py OUTDIR LOG --seed 7` of every corrected log found in
+             ../shared/datasets (`*.gfs.log`, `*-corrected.log*`, any depth); ATE RMSE and loop
+             precision/recall (`slam2d eval loops --ground-truth`) against the `.gt.txt` it writes;
+  clinic     fr-clinic (`datasets/fr-clinic/*.clf.bz2`): wall time, peak RSS, loop closures, health.
+`--datasets` names the dataset folders to keep (intel, aces, fr079, orebro, fr-clinic, ...).
+Generated logs go to a cache folder outside the repository (`--cache`, default
+`$XDG_CACHE_HOME/slam2d-benchmark` or `~/.cache/slam2d-benchmark`), in a subfolder keyed on the
+seed and the generating tool's sha256, and are made again only when missing.
+The Karto peer (`--peers`) runs beside slam2d on every CARMEN FLASER log (relations, degraded,
+sparse); it cannot read fr-clinic's ROBOTLASER1 records. `bench_logs.py` makes and caches the
+generated logs, `bench_tables.py` writes the tables.
 
 Each run is a whole `slam2d run` process: wall time and peak memory are what the OS
 reports for it (os.wait4). Numba's cache is warmed by a short run first, so compile time
@@ -26,13 +43,15 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+sys.path.insert(0, str(ROOT / "tools"))
+
+from bench_logs import corrected_logs, default_cache, degraded_log, sparse_log  # noqa: E402
+from bench_tables import TARGETS, clinic_table, degraded_table, sparse_table, table  # noqa: E402
+
 SHARED = ROOT.parent / "shared"
-CARTOGRAPHER = {  # Hess et al. 2016: Table II (abs trans m, abs rot deg, mean ± std), Table V (wall s)
-    "aces": {"trans": (0.0375, 0.0426), "rot": (0.373, 0.469), "wall_s": 41},
-    "intel": {"trans": (0.0229, 0.0239), "rot": (0.453, 1.335), "wall_s": 179},
-    "fr079": {"trans": (0.0452, 0.0354), "rot": (0.538, 0.718), "wall_s": 62},
-}
 REFERENCE_LOGS = {"intel": "intel.gfs.log", "aces": "aces-corrected.log.gz", "fr079": "freiburg-079-corrected.log.gz"}
+SUITES = ("relations", "degraded", "sparse", "clinic")
+LOOP_TOLERANCE = (0.3, 2.0)  # m, deg: slam2d eval loops --ground-truth defaults
 
 
 def timed(cmd: list[str]) -> dict:
@@ -64,34 +83,108 @@ def _median_run(runs: list[dict]) -> dict:
     return pick
 
 
+def run_log(label: str, log: Path, args, outdir: Path, peer: bool = True) -> dict:
+    """slam2d on one log (and the Karto peer when asked and ``peer``), ``--repeat`` times alternating.
+
+    Returns {"slam2d": {...}, "karto": {...}?}; slam2d's run folder is ``outdir/label``, the
+    peer's trajectory ``outdir/label_karto.txt``."""
+    slam = [sys.executable, "-m", "slam2d.cli", "run", str(log), "--no-progress"]
+    if args.config:
+        slam += ["--config", str(args.config)]
+    karto = outdir / f"{label}_karto.txt"
+    peer_cmd = [sys.executable, str(args.shared / "tools" / "peer_karto.py"), str(log), "--out", str(karto)]
+    peer = peer and args.peers
+    # slam2d and the peer alternate --repeat times; each reports its median wall time, so a
+    # machine whose speed drifts during the benchmark favours neither
+    runs, peer_runs = [], []
+    for _ in range(max(1, args.repeat)):
+        runs.append(timed(slam + ["--out", str(outdir / label)] + args.extra))
+        if runs[-1]["returncode"] != 0:
+            raise SystemExit(f"{label}: slam2d run failed: {runs[-1]['stderr'].strip()}")
+        if peer:
+            peer_runs.append(timed(peer_cmd))
+    r = _median_run(runs)
+    summary = json.loads((outdir / label / "summary.json").read_text())
+    row: dict = {"dataset": label, "log": str(log)}
+    row["slam2d"] = {"wall_s": r["wall_s"], "wall_s_runs": [round(x["wall_s"], 2) for x in runs],
+                     "peak_rss_mb": r["peak_rss_mb"], "scans": summary["scans"],
+                     "duration_s": summary["duration_s"], "real_time_factor": summary["duration_s"] / r["wall_s"],
+                     "timings": summary.get("timings", {}), "mode": summary.get("mode"),
+                     "loop_closure": summary.get("loop_closure"), "health": summary.get("health")}
+    if peer:
+        p = _median_run(peer_runs)
+        if p["returncode"] == 0:
+            row["karto"] = {"wall_s": p["wall_s"], "peak_rss_mb": p["peak_rss_mb"], "trajectory": str(karto),
+                            "wall_s_runs": [round(x["wall_s"], 2) for x in peer_runs]}
+        else:
+            row["karto"] = {"error": p["stderr"].strip().splitlines()[-1] if p["stderr"].strip() else "failed"}
+    return row
+
+
+def ate_vs_ground_truth(traj: Path, gt_path: Path) -> dict:
+    """ATE (slam2d.eval.ate) of a TUM trajectory against a per-scan ground truth (``load_ground_truth``)."""
+    from slam2d.eval.ate import ate
+    from slam2d.eval.reference import load_ground_truth
+    from slam2d.io.trajectory import read_tum
+
+    t, poses, _ = read_tum(traj)
+    gt = load_ground_truth(gt_path, t)
+    out = ate(poses[gt.scan_indices], gt.poses[gt.scan_indices])
+    out["matching"] = gt.matching
+    return out
+
+
+def loops_vs_ground_truth(run_dir: Path, gt_path: Path) -> dict | None:
+    """``slam2d eval loops RUN_DIR --ground-truth GT --json``'s ``ground_truth`` object (None without loops)."""
+    from slam2d.eval.loops import Thresholds, check_stamps, classify_ground_truth, read_constraints
+    from slam2d.eval.reference import load_ground_truth
+    from slam2d.io.trajectory import read_tum
+
+    if not (run_dir / "constraints.jsonl").exists():
+        return None
+    t, _, _ = read_tum(run_dir / "trajectory.txt")
+    cs = read_constraints(run_dir / "constraints.jsonl")
+    check_stamps(cs, t, run_dir / "constraints.jsonl")
+    gt = load_ground_truth(gt_path, t)
+    return {"matching": gt.matching, **classify_ground_truth(cs, gt.poses, gt.scan_indices, *LOOP_TOLERANCE, Thresholds())}
+
+
+def bench_degraded(name: str, log: Path, args, outdir: Path) -> dict:
+    rel = args.shared / "datasets" / name / f"{name}.relations"
+    row = run_log(f"degraded-{name}", log, args, outdir)
+    row["dataset"] = name
+    row["slam2d"]["relations"] = relations_of(outdir / f"degraded-{name}" / "trajectory.txt", rel)
+    if "trajectory" in row.get("karto", {}):
+        row["karto"]["relations"] = relations_of(Path(row["karto"]["trajectory"]), rel)
+    return row
+
+
+def bench_sparse(name: str, log: Path, gt: Path, args, outdir: Path) -> dict:
+    row = run_log(f"sparse-{name}", log, args, outdir)
+    row["dataset"], row["ground_truth"] = name, str(gt)
+    row["slam2d"]["ate"] = ate_vs_ground_truth(outdir / f"sparse-{name}" / "trajectory.txt", gt)
+    row["slam2d"]["loops_vs_ground_truth"] = loops_vs_ground_truth(outdir / f"sparse-{name}", gt)
+    if "trajectory" in row.get("karto", {}):
+        row["karto"]["ate"] = ate_vs_ground_truth(Path(row["karto"]["trajectory"]), gt)
+    return row
+
+
+def bench_clinic(log: Path, args, outdir: Path) -> dict:
+    row = run_log(f"clinic-{log.name.split('.')[0]}", log, args, outdir, peer=False)  # the peer reads FLASER only
+    row["dataset"] = log.parent.name
+    return row
+
+
 def bench_dataset(name: str, args, outdir: Path) -> dict:
-    d = SHARED / "datasets" / name
+    d = args.shared / "datasets" / name
     log = d / f"{name}.clf.bz2"
     rel = d / f"{name}.relations"
     slam = [sys.executable, "-m", "slam2d.cli", "run", str(log), "--no-progress"]
     if args.config:
         slam += ["--config", str(args.config)]
-    row: dict = {"dataset": name}
-    peer = SHARED / "tools" / "peer_karto.py"
-    out = outdir / f"{name}_karto.txt"
-    peer_cmd = [sys.executable, str(peer), str(log), "--out", str(out)]
-    # slam2d and the peer alternate --repeat times; each reports its median wall time, so a
-    # machine whose speed drifts during the benchmark favours neither
-    runs, peer_runs = [], []
-    for _ in range(max(1, args.repeat)):
-        runs.append(timed(slam + ["--out", str(outdir / name)] + args.extra))
-        if runs[-1]["returncode"] != 0:
-            raise SystemExit(f"{name}: slam2d run failed: {runs[-1]['stderr'].strip()}")
-        if args.peers:
-            peer_runs.append(timed(peer_cmd))
-    r = _median_run(runs)
-    summary = json.loads((outdir / name / "summary.json").read_text())
-    m = relations_of(outdir / name / "trajectory.txt", rel)
-    row["slam2d"] = {"wall_s": r["wall_s"], "wall_s_runs": [round(x["wall_s"], 2) for x in runs],
-                     "peak_rss_mb": r["peak_rss_mb"], "scans": summary["scans"],
-                     "duration_s": summary["duration_s"], "real_time_factor": summary["duration_s"] / r["wall_s"],
-                     "relations": m, "timings": summary.get("timings", {}), "mode": summary.get("mode"),
-                     "loop_closure": summary.get("loop_closure")}
+    row = run_log(name, log, args, outdir)
+    r = row["slam2d"]
+    r["relations"] = relations_of(outdir / name / "trajectory.txt", rel)
     if args.rerun:
         rrd = outdir / f"{name}.rrd"
         rv = timed(slam + ["--out", str(outdir / f"{name}_rerun"), "--rerun", str(rrd)] + args.extra)
@@ -100,13 +193,8 @@ def bench_dataset(name: str, args, outdir: Path) -> dict:
                             "overhead": rv["wall_s"] / r["wall_s"] - 1.0}
     timed(slam + ["--out", str(outdir / f"{name}_odometry"), "--odometry-only"])
     row["odometry"] = {"relations": relations_of(outdir / f"{name}_odometry" / "trajectory.txt", rel)}
-    if args.peers:
-        p = _median_run(peer_runs)
-        if p["returncode"] == 0:
-            row["karto"] = {"wall_s": p["wall_s"], "peak_rss_mb": p["peak_rss_mb"], "relations": relations_of(out, rel),
-                            "wall_s_runs": [round(x["wall_s"], 2) for x in peer_runs]}
-        else:
-            row["karto"] = {"error": p["stderr"].strip().splitlines()[-1] if p["stderr"].strip() else "failed"}
+    if "trajectory" in row.get("karto", {}):
+        row["karto"]["relations"] = relations_of(Path(row["karto"]["trajectory"]), rel)
     ref = d / REFERENCE_LOGS.get(name, "")
     if (outdir / name / "constraints.jsonl").exists():
         cmd = [sys.executable, "-m", "slam2d.cli", "eval", "loops", str(outdir / name), "--json", "--run-input", str(log)]
@@ -131,100 +219,121 @@ def bench_dataset(name: str, args, outdir: Path) -> dict:
     return row
 
 
-def fmt(ms):
-    return f"{ms[0]:.4f} ± {ms[1]:.4f}"
-
-
-def table(rows, args) -> str:
-    lines = ["| dataset | system | scans | data s | wall s | real-time × | peak RSS MB | trans abs m (mean ± std) | rot abs ° (mean ± std) | loop closures (final / searched) | precision (final graph) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
-    for row in rows:
-        n = row["dataset"]
-        s = row["slam2d"]
-        m = s["relations"]
-        lc = s.get("loop_closure") or {}
-        lo = row.get("loops")
-        prec = "—"
-        if lo:
-            own = lo["own"]["final_graph"]["precision"]
-            prec = f"{100 * own:.1f} % own" if own is not None else "—"
-            refp = lo.get("reference", {}).get("final_graph", {}).get("precision")
-            if refp is not None:
-                prec += f", {100 * refp:.1f} % ref"
-        lc_txt = f"{lc.get('in_final_graph', '—')} of {lc.get('candidates_searched', '—')}" if lc else "—"
-        lines.append(f"| {n} | slam2d ({s['mode']}) | {s['scans']} | {s['duration_s']:.1f} | {s['wall_s']:.1f} | "
-                     f"{s['real_time_factor']:.1f} | {s['peak_rss_mb']:.0f} | "
-                     f"{fmt((m['abs_trans_m']['mean'], m['abs_trans_m']['std']))} | "
-                     f"{m['abs_rot_deg']['mean']:.3f} ± {m['abs_rot_deg']['std']:.3f} | "
-                     f"{lc_txt} | {prec} |")
-        if "karto" in row and "relations" in row["karto"]:
-            k = row["karto"]
-            km = k["relations"]
-            lines.append(f"| {n} | Karto peer (sequential) | {s['scans']} | {s['duration_s']:.1f} | {k['wall_s']:.1f} | "
-                         f"{s['duration_s'] / k['wall_s']:.1f} | {k['peak_rss_mb']:.0f} | "
-                         f"{fmt((km['abs_trans_m']['mean'], km['abs_trans_m']['std']))} | "
-                         f"{km['abs_rot_deg']['mean']:.3f} ± {km['abs_rot_deg']['std']:.3f} | — | — |")
-        om = row["odometry"]["relations"]
-        lines.append(f"| {n} | raw odometry | {s['scans']} | | | | | {fmt((om['abs_trans_m']['mean'], om['abs_trans_m']['std']))} | "
-                     f"{om['abs_rot_deg']['mean']:.3f} ± {om['abs_rot_deg']['std']:.3f} | | |")
-        c = CARTOGRAPHER.get(n)
-        if c:
-            lines.append(f"| {n} | Cartographer (published, 6-core Xeon) | | | {c['wall_s']} | | | {fmt(c['trans'])} | "
-                         f"{c['rot'][0]:.3f} ± {c['rot'][1]:.3f} | | |")
-    return "\n".join(lines)
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0], epilog=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--datasets", default=None, help="comma-separated names (default: every folder in ../shared/datasets)")
+    ap.add_argument("--suite", default=",".join(SUITES), help=f"comma-separated suites (default: all of {','.join(SUITES)})")
+    ap.add_argument("--datasets", default=None,
+                    help="comma-separated dataset folder names to keep in every suite (default: all found)")
     ap.add_argument("--config", default=str(ROOT / "configs" / "default.yaml"))
     ap.add_argument("--peers", action="store_true", help="also run ../shared/tools/peer_karto.py (needs karto-scanmatcher)")
-    ap.add_argument("--rerun", action="store_true", help="also time each run with --rerun (recording cost and size)")
+    ap.add_argument("--rerun", action="store_true", help="also time each relations run with --rerun (recording cost and size)")
     ap.add_argument("--repeat", type=int, default=1,
                     help="time slam2d (and the peer) this many times, alternating, and report the median wall time")
-    ap.add_argument("--jobs", type=int, default=1, help="datasets run in parallel (default 1: timings undisturbed)")
+    ap.add_argument("--jobs", type=int, default=1, help="logs run in parallel (default 1: timings undisturbed)")
     ap.add_argument("--out", default=str(ROOT / "benchmarks"), help="folder for runs and plots")
+    ap.add_argument("--cache", default=None,
+                    help="folder for generated (degraded, sparse) logs (default $XDG_CACHE_HOME/slam2d-benchmark "
+                         "or ~/.cache/slam2d-benchmark)")
+    ap.add_argument("--shared", default=str(SHARED), help="folder holding datasets/ and tools/ (default ../shared)")
+    ap.add_argument("--degrade-seed", type=int, default=1, help="degrade.py --seed (default 1, issue 11)")
+    ap.add_argument("--sparse-seed", type=int, default=7, help="make_sparse.py --seed (default 7, issue 11)")
     ap.add_argument("--title", default="Benchmarks", help="heading of the markdown file")
     ap.add_argument("--markdown", default=str(ROOT / "BENCHMARKS.md"))
     ap.add_argument("--json", default=str(ROOT / "benchmarks.json"))
     ap.add_argument("--extra", default="", help="extra arguments for slam2d run, e.g. '--no-loop-closure' (use --extra=...)")
     args = ap.parse_args(argv)
     args.extra = args.extra.split()
-    if not (SHARED / "datasets").is_dir():
-        print(f"benchmark: {SHARED / 'datasets'} not found", file=sys.stderr)
+    args.shared = Path(args.shared).resolve()
+    args.cache = Path(args.cache) if args.cache else default_cache()
+    suites = [x for x in args.suite.split(",") if x]
+    unknown = sorted(set(suites) - set(SUITES))
+    if unknown:
+        ap.error(f"--suite: unknown {', '.join(unknown)} (choose from {', '.join(SUITES)})")
+    datasets = args.shared / "datasets"
+    if not datasets.is_dir():
+        print(f"benchmark: {datasets} not found", file=sys.stderr)
         return 2
-    names = args.datasets.split(",") if args.datasets else sorted(
-        p.name for p in (SHARED / "datasets").iterdir() if (p / f"{p.name}.clf.bz2").exists())
+    keep = set(args.datasets.split(",")) if args.datasets else None
+    wanted = (lambda n: keep is None or n in keep)
+    relation_names = sorted(p.name for p in datasets.iterdir()
+                            if (p / f"{p.name}.clf.bz2").exists() and (p / f"{p.name}.relations").exists() and wanted(p.name))
     outdir = Path(args.out)
-    (outdir / "runs").mkdir(parents=True, exist_ok=True)
+    runs = outdir / "runs"
+    runs.mkdir(parents=True, exist_ok=True)
+    # every job: (suite, log, thunk); generated logs are made (or found in the cache) first
+    jobs: list[tuple[str, Path, object]] = []
+    if "relations" in suites:
+        jobs += [("relations", datasets / n / f"{n}.clf.bz2", lambda n=n: bench_dataset(n, args, runs))
+                 for n in relation_names]
+    if "degraded" in suites:
+        for n in relation_names:
+            log = degraded_log(args, n)
+            jobs.append(("degraded", log, lambda n=n, log=log: bench_degraded(n, log, args, runs)))
+    if "sparse" in suites:
+        for n, corrected in corrected_logs(datasets):
+            if wanted(n):
+                log, gt = sparse_log(args, n, corrected)
+                jobs.append(("sparse", log, lambda n=n, log=log, gt=gt: bench_sparse(n, log, gt, args, runs)))
+    if "clinic" in suites:
+        jobs += [("clinic", log, lambda log=log: bench_clinic(log, args, runs))
+                 for log in sorted((datasets / "fr-clinic").glob("*.clf.bz2")) if wanted("fr-clinic")]
+    if not jobs:
+        print("benchmark: nothing to run (check --suite and --datasets)", file=sys.stderr)
+        return 2
     # warm numba's cache so compile time is not timed
-    first = SHARED / "datasets" / names[0] / f"{names[0]}.clf.bz2"
-    subprocess.run([sys.executable, "-m", "slam2d.cli", "run", str(first), "--out", str(outdir / "runs" / "warmup"),
+    subprocess.run([sys.executable, "-m", "slam2d.cli", "run", str(jobs[0][1]), "--out", str(runs / "warmup"),
                     "--max-scans", "300", "--no-progress"], check=True, capture_output=True)
     with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as ex:
-        rows = list(ex.map(lambda n: bench_dataset(n, args, outdir / "runs"), names))
+        done = list(ex.map(lambda j: (j[0], j[2]()), jobs))
+    by_suite = {s: [row for k, row in done if k == s] for s in SUITES}
+    rows = by_suite["relations"]
     for row in rows:
         for p in row.get("plots", []):
-            if (outdir / "runs" / p).exists():
-                os.replace(outdir / "runs" / p, outdir / p)
+            if (runs / p).exists():
+                os.replace(runs / p, outdir / p)
     meta = {"date": time.strftime("%Y-%m-%d %H:%M"), "machine": f"{platform.machine()}, {os.cpu_count()} cores",
             "python": platform.python_version(), "config": os.path.relpath(args.config, ROOT),
-            "extra_args": args.extra, "jobs": args.jobs,
-            "repeat": args.repeat}
-    Path(args.json).write_text(json.dumps({"meta": meta, "rows": rows}, indent=2, default=float) + "\n")
+            "extra_args": args.extra, "jobs": args.jobs, "repeat": args.repeat, "suites": suites,
+            "degrade_seed": args.degrade_seed, "sparse_seed": args.sparse_seed, "cache": str(args.cache),
+            "targets": TARGETS}
+    Path(args.json).write_text(json.dumps({"meta": meta, "rows": rows, "degraded": by_suite["degraded"],
+                                           "sparse": by_suite["sparse"], "clinic": by_suite["clinic"]},
+                                          indent=2, default=float) + "\n")
     flags = "".join(f" --{f}" for f in ("peers", "rerun") if getattr(args, f))
     flags += f" --repeat {args.repeat}" if args.repeat > 1 else ""
+    flags += f" --suite {args.suite}" if suites != list(SUITES) else ""
+    flags += f" --datasets {args.datasets}" if args.datasets else ""
     md = [f"# {args.title}", "",
           f"`python tools/benchmark.py{flags}` on {meta['date']} ({meta['machine']}, "
           f"Python {meta['python']}), config `{meta['config']}`{', slam2d run ' + ' '.join(args.extra) if args.extra else ''}. "
           "Wall time and peak RSS are those of the whole process"
           + (f" (median of {args.repeat} runs, slam2d and the peer alternating)" if args.repeat > 1 else "")
-          + "; accuracy is the relations metric "
-          "(Kümmerle et al. 2009) on each dataset's `.relations`. Cartographer's rows are its published figures "
-          "(Hess et al. 2016, Tables II and V; wall clock on a 6-core Xeon). Loop-closure precision counts the "
-          "constraints left in the final graph: 'own' against slam2d's final poses (0.2 m / 1°, Cartographer's Table IV "
-          "criterion), 'ref' against the GMapping-corrected log (0.3 m / 2°; scans between its key scans take the key "
-          "pose plus raw odometry).", "", table(rows, args), ""]
+          + ". 'loops' are the loop-closure constraints accepted / left in the final graph / searched "
+          "(summary.json); 'health' is summary.json's `health.status` where the run writes one. "
+          "Targets are those of issue 11.", ""]
+    if "relations" in suites:
+        md += ["## Relations logs", "",
+               "Accuracy is the relations metric "
+               "(Kümmerle et al. 2009) on each dataset's `.relations`. Cartographer's rows are its published figures "
+               "(Hess et al. 2016, Tables II and V; wall clock on a 6-core Xeon). Loop-closure precision counts the "
+               "constraints left in the final graph: 'own' against slam2d's final poses (0.2 m / 1°, Cartographer's Table IV "
+               "criterion), 'ref' against the GMapping-corrected log (0.3 m / 2°; scans between its key scans take the key "
+               "pose plus raw odometry).", "", table(rows, args), ""]
+    if "degraded" in suites:
+        md += ["## Degraded odometry", "",
+               f"`degrade.py IN OUT --seed {args.degrade_seed}` (its default odometry model) of each relations log, scored "
+               "on the original `.relations`; the target is Cartographer's published figure for the clean log.", "",
+               degraded_table(by_suite["degraded"]), ""]
+    if "sparse" in suites:
+        md += ["## Sparse logs", "",
+               f"`make_sparse.py OUTDIR LOG --seed {args.sparse_seed}` of every corrected log in `../shared/datasets` "
+               "(scans ~1 m apart, noisy synthetic odometry). ATE RMSE after SE(2) alignment against the `.gt.txt` it "
+               "writes; loop precision is `slam2d eval loops --ground-truth` (0.3 m / 2°) over the constraints in the "
+               "final graph (in brackets: over all accepted ones), recall over the ground truth's revisit episodes.", "",
+               sparse_table(by_suite["sparse"]), ""]
+    if "clinic" in suites:
+        md += ["## fr-clinic", "", "No ground truth: wall time, peak RSS, loop closures and the run's own health report.",
+               "", clinic_table(by_suite["clinic"]), ""]
     if any("rerun" in row for row in rows):
         md += ["Cost of `--rerun` (same run, recording to an .rrd):", "",
                "| dataset | wall s without | wall s with --rerun | overhead | .rrd MB | peak RSS MB with |", "|---|---|---|---|---|---|"]

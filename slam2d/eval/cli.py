@@ -11,6 +11,8 @@ EXAMPLES = """examples:
   slam2d eval relations runs/intel/trajectory.txt ../shared/datasets/intel/intel.relations
   slam2d eval ate runs/intel/trajectory.txt ../shared/datasets/intel/intel.gfs.log --plot runs/intel/ate.png
   slam2d eval loops runs/intel --reference ../shared/datasets/intel/intel.gfs.log
+  slam2d eval loops runs/orebro --ground-truth sparse/orebro.gt.txt
+  slam2d eval loops runs/sim --ground-truth data/sim_office.mcap
 """
 
 
@@ -41,6 +43,11 @@ def add_eval_parser(sub):
     lp.add_argument("--own-rot", type=float, default=1.0, help="(a) own-solution threshold [deg] (default 1)")
     lp.add_argument("--ref-trans", type=float, default=0.3, help="(b) reference threshold [m] (default 0.3)")
     lp.add_argument("--ref-rot", type=float, default=2.0, help="(b) reference threshold [deg] (default 2)")
+    lp.add_argument("--ground-truth", default=None,
+                    help="ground truth independent of the run: TUM file with one pose per scan (matched in scan order "
+                         "when the counts are equal, else by timestamp), or an MCAP with /ground_truth")
+    lp.add_argument("--tolerance-trans", type=float, default=0.3, help="ground-truth tolerance [m] (default 0.3)")
+    lp.add_argument("--tolerance-rot", type=float, default=2.0, help="ground-truth tolerance [deg] (default 2)")
     lp.add_argument("--revisit-distance", type=float, default=1.0, help="recall: a revisit comes this close [m]")
     lp.add_argument("--plot-dir", default=None, help="write loops_on_map.png and loop_scores.png here (default RUN_DIR)")
     lp.add_argument("--json", action="store_true")
@@ -109,14 +116,16 @@ def _ate(args) -> int:
 
 
 def _loops(args) -> int:
-    from slam2d.eval.loops import Thresholds, classify, read_constraints
+    from slam2d.eval.loops import (Thresholds, check_stamps, classify, classify_ground_truth, read_constraints,
+                                   score_histogram)
     from slam2d.eval.plots import plot_loops, plot_score_histogram
-    from slam2d.eval.reference import load_reference, run_input_of
+    from slam2d.eval.reference import load_ground_truth, load_reference, run_input_of
     from slam2d.io.trajectory import read_tum
 
     run_dir = Path(args.run_dir)
     t, poses, _ = read_tum(run_dir / "trajectory.txt")
     constraints = read_constraints(run_dir / "constraints.jsonl")
+    check_stamps(constraints, t, run_dir / "constraints.jsonl")
     th = Thresholds(args.own_trans, args.own_rot, args.ref_trans, args.ref_rot, args.revisit_distance)
     ref_dense = ref_key = None
     if args.reference:
@@ -128,8 +137,16 @@ def _loops(args) -> int:
             ref_dense = np.vstack([ref_dense, np.full((len(t) - len(ref_dense), 3), np.nan)])
         ref_key = (ref.scan_indices, ref.poses)
     out = classify(constraints, poses, ref_dense, ref_key, th)
-    plot_dir = Path(args.plot_dir) if args.plot_dir else run_dir
     key = "true_ref" if ref_dense is not None else "true_own"
+    if args.ground_truth:
+        gt = load_ground_truth(args.ground_truth, t)
+        out["ground_truth"] = {"file": str(args.ground_truth), "matching": gt.matching,
+                               "poses": gt.total_ground_truth_poses, "matched_scans": int(len(gt.scan_indices)),
+                               **classify_ground_truth(constraints, gt.poses, gt.scan_indices, args.tolerance_trans,
+                                                       args.tolerance_rot, th)}
+        key = "true_gt"
+        out["score_histogram"] = score_histogram(constraints, key)
+    plot_dir = Path(args.plot_dir) if args.plot_dir else run_dir
     plot_loops(plot_dir / "loops_on_map.png", run_dir, poses, constraints, key)
     plot_score_histogram(plot_dir / "loop_scores.png", out["score_histogram"], "loop-closure scores")
     out.pop("score_histogram") if not args.json else None

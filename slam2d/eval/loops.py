@@ -9,7 +9,10 @@ scan's frame, ``score``, ``accepted``, optionally ``in_final_graph``) is classif
 (b) against a reference trajectory: true within 0.3 m and 2° (the reference has its own
     few-centimetre error).
 
-Recall counts revisit episodes of the reference — runs of reference scans that come back
+(c) against a ground truth independent of the run (``--ground-truth``: the simulator's, or the
+    ``.gt.txt`` of ``make_sparse.py``): true within a tolerance, by default 0.3 m and 2°.
+
+Recall counts revisit episodes of the reference (or ground truth) — runs of reference scans that come back
 within ``revisit_distance`` of a place passed more than ``min_loop_travel`` metres of path
 earlier — that at least one true accepted constraint touches.
 """
@@ -59,8 +62,29 @@ def read_constraints(path) -> list[dict]:
                 raise InputError(path, "an accepted constraint needs a relative_pose", line=n)
             if c["relative_pose"] is not None and len(c["relative_pose"]) != 3:
                 raise InputError(path, "relative_pose needs 3 values", line=n)
+            c["line"] = n
             out.append(c)
     return out
+
+
+def check_stamps(constraints: list[dict], run_stamps: np.ndarray, path, tolerance: float = 1e-3) -> None:
+    """A constraint's ``from_stamp``/``to_stamp`` (when written) must be the run's stamps of its
+    scans: otherwise constraints.jsonl and trajectory.txt are not from the same run."""
+    for c in constraints:
+        for end in ("from", "to"):
+            stamp, i = c.get(f"{end}_stamp"), c[f"{end}_scan"]
+            if stamp is None:
+                continue
+            if not 0 <= i < len(run_stamps):
+                raise InputError(path, f"{end}_scan {i} is not a scan of trajectory.txt ({len(run_stamps)} scans)",
+                                 line=c["line"])
+            try:
+                bad = abs(float(stamp) - run_stamps[i]) > tolerance
+            except (TypeError, ValueError):
+                raise InputError(path, f"{end}_stamp is not a number: {stamp!r}", line=c["line"]) from None
+            if bad:
+                raise InputError(path, f"{end}_stamp {stamp} is not trajectory.txt's stamp {run_stamps[i]:.6f} "
+                                 f"of scan {i} (files from different runs?)", line=c["line"])
 
 
 def agrees(poses: np.ndarray, c: dict, trans: float, rot_deg: float):
@@ -94,6 +118,35 @@ def revisit_episodes(ref_idx: np.ndarray, ref_poses: np.ndarray, th: Thresholds)
     return episodes
 
 
+def _precision(cs, key) -> dict:
+    known = [c[key] for c in cs if c[key] is not None]
+    return {"true": int(sum(known)), "false": int(len(known) - sum(known)), "unknown": len(cs) - len(known),
+            "precision": (sum(known) / len(known)) if known else None}
+
+
+def _recall(final: list[dict], key: str, episodes: list[tuple[int, int]]) -> dict:
+    """Episodes touched (at either end) by at least one true constraint of the final graph."""
+    hit = sum(1 for a, b in episodes
+              if any(c[key] and (a <= c["to_scan"] <= b or a <= c["from_scan"] <= b) for c in final))
+    return {"episodes": len(episodes), "closed": hit, "recall": hit / len(episodes) if episodes else None}
+
+
+def classify_ground_truth(constraints: list[dict], gt_poses: np.ndarray, gt_scans: np.ndarray,
+                          trans: float = 0.3, rot_deg: float = 2.0, th: Thresholds = Thresholds()) -> dict:
+    """Precision and recall of loop constraints against a ground truth (one pose per scan, NaN where
+    unknown; ``gt_scans`` the scans that have one). Sets ``c["true_gt"]`` on every constraint.
+
+    Precision is over the accepted constraints that are in the final graph (the headline) and over
+    all accepted ones; recall is over the ground truth's revisit episodes."""
+    for c in constraints:
+        c["true_gt"] = agrees(gt_poses, c, trans, rot_deg)
+    accepted = [c for c in constraints if c["accepted"]]
+    final = [c for c in accepted if c.get("in_final_graph", True)]
+    return {"tolerance": {"trans_m": trans, "rot_deg": rot_deg},
+            "final_graph": _precision(final, "true_gt"), "accepted": _precision(accepted, "true_gt"),
+            "recall": _recall(final, "true_gt", revisit_episodes(gt_scans, gt_poses[gt_scans], th))}
+
+
 def classify(constraints: list[dict], own_poses: np.ndarray, ref_dense: np.ndarray | None,
              ref_key: tuple[np.ndarray, np.ndarray] | None, th: Thresholds = Thresholds()) -> dict:
     for c in constraints:
@@ -102,29 +155,24 @@ def classify(constraints: list[dict], own_poses: np.ndarray, ref_dense: np.ndarr
     accepted = [c for c in constraints if c["accepted"]]
     final = [c for c in accepted if c.get("in_final_graph", True)]
 
-    def precision(cs, key):
-        known = [c[key] for c in cs if c[key] is not None]
-        return {"true": int(sum(known)), "false": int(len(known) - sum(known)), "unknown": len(cs) - len(known),
-                "precision": (sum(known) / len(known)) if known else None}
-
     out = {
         "constraints": len(constraints),
         "accepted": len(accepted),
         "in_final_graph": len(final),
-        "own": {"accepted": precision(accepted, "true_own"), "final_graph": precision(final, "true_own")},
+        "own": {"accepted": _precision(accepted, "true_own"), "final_graph": _precision(final, "true_own")},
     }
     if ref_dense is not None:
-        out["reference"] = {"accepted": precision(accepted, "true_ref"), "final_graph": precision(final, "true_ref"),
-                            "rejected": precision([c for c in constraints if not c["accepted"]], "true_ref")}
+        out["reference"] = {"accepted": _precision(accepted, "true_ref"), "final_graph": _precision(final, "true_ref"),
+                            "rejected": _precision([c for c in constraints if not c["accepted"]], "true_ref")}
         if ref_key is not None:
-            eps = revisit_episodes(ref_key[0], ref_key[1], th)
-            hit = 0
-            for a, b in eps:
-                if any(c["true_ref"] and (a <= c["to_scan"] <= b or a <= c["from_scan"] <= b) for c in final):
-                    hit += 1
-            out["reference"]["recall"] = {"episodes": len(eps), "closed": hit,
-                                          "recall": hit / len(eps) if eps else None}
+            out["reference"]["recall"] = _recall(final, "true_ref", revisit_episodes(ref_key[0], ref_key[1], th))
     key = "true_ref" if ref_dense is not None else "true_own"
+    out["score_histogram"] = score_histogram(constraints, key)
+    return out
+
+
+def score_histogram(constraints: list[dict], key: str) -> dict:
+    """Scores of the constraints judged true / false by ``key``, in 20 bins over [0, 1]."""
     bins = np.linspace(0.0, 1.0, 21)
     hist = {"bins": bins.tolist(), "true": [0] * 20, "false": [0] * 20}
     for c in constraints:
@@ -132,5 +180,4 @@ def classify(constraints: list[dict], own_poses: np.ndarray, ref_dense: np.ndarr
             continue
         b = int(np.clip(np.searchsorted(bins, c["score"], side="right") - 1, 0, 19))
         hist["true" if c[key] else "false"][b] += 1
-    out["score_histogram"] = hist
-    return out
+    return hist

@@ -152,3 +152,50 @@ def _load_reference(ref_path, run_stamps, run_input, tolerance) -> Reference:
     idx = order[near[ok]]
     keep = np.argsort(idx, kind="stable")
     return Reference(idx[keep], poses[ok][keep], "tum", len(t))
+
+
+@dataclass
+class GroundTruth:
+    """One ground-truth pose per scan of a run (NaN where the ground truth has none)."""
+
+    poses: np.ndarray         # (N, 3), N = the run's scans
+    scan_indices: np.ndarray  # (K,) scans that have a pose, increasing
+    matching: str             # "scan_order" | "timestamp" | "mcap_scan_index"
+    total_ground_truth_poses: int
+
+
+def load_ground_truth(path, run_stamps: np.ndarray, tolerance: float = 1e-3) -> GroundTruth:
+    """A ground truth independent of the run: a TUM file with one pose per scan, matched to the
+    run's scans in scan order when the counts are equal, else by nearest timestamp (within
+    ``tolerance`` s); or an MCAP with the simulator's ``/ground_truth`` (one pose per scan)."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(path, "no such file")
+    n = len(run_stamps)
+    dense = np.full((n, 3), np.nan)
+    if path.name.lower().endswith(".mcap"):
+        ref = _load_reference(path, run_stamps, None, tolerance)
+        idx = ref.scan_indices[ref.scan_indices < n]
+        if len(idx) == 0:
+            raise InputError(path, f"no ground-truth pose falls on one of the run's {n} scans")
+        dense[idx] = ref.poses[ref.scan_indices < n]
+        return GroundTruth(dense, idx, "mcap_scan_index", ref.total_reference_scans)
+    from slam2d.io.trajectory import read_tum
+
+    t, poses, _ = read_tum(path)
+    if len(t) == n:
+        return GroundTruth(poses.copy(), np.arange(n), "scan_order", len(t))
+    order = np.argsort(run_stamps, kind="stable")
+    st = run_stamps[order]
+    if n == 1:
+        near = np.zeros(len(t), int)
+    else:
+        pos = np.clip(np.searchsorted(st, t), 1, n - 1)
+        near = np.where(np.abs(st[pos - 1] - t) <= np.abs(st[pos] - t), pos - 1, pos)
+    ok = np.abs(st[near] - t) <= tolerance
+    if not ok.any():
+        raise InputError(path, f"{len(t)} poses for the run's {n} scans, and no timestamp within {tolerance} s "
+                         "of a scan's timestamp (trajectory.txt)")
+    idx = order[near[ok]]
+    dense[idx] = poses[ok]
+    return GroundTruth(dense, np.unique(idx), "timestamp", len(t))

@@ -1,0 +1,73 @@
+"""Logs the benchmark generates from ../shared/datasets (degraded and sparse copies), kept in a cache
+folder outside the repository, one subfolder per generating tool, seed and tool sha256."""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+
+def default_cache() -> Path:
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "slam2d-benchmark"
+
+
+def _sha(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:12]
+
+
+def cached(cache: Path, tool: Path, seed: int, name: str, source: Path, make) -> Path:
+    """The folder ``cache/<tool>-seed<seed>-<tool sha256>/<name>``, filled by ``make(folder)`` when it
+    is missing (or was made from a different source file) and reused otherwise."""
+    d = Path(cache) / f"{tool.stem}-seed{seed}-{_sha(tool)}" / name
+    st = Path(source).stat()
+    key = {"tool": str(tool), "seed": seed, "source": str(source), "source_size": st.st_size,
+           "source_mtime": st.st_mtime}
+    done = d / "DONE.json"
+    if done.exists() and json.loads(done.read_text()) == key:
+        return d
+    tmp = d.with_name(d.name + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    make(tmp)
+    (tmp / "DONE.json").write_text(json.dumps(key))
+    shutil.rmtree(d, ignore_errors=True)
+    os.replace(tmp, d)
+    return d
+
+
+def _tool(cmd: list) -> None:
+    r = subprocess.run([sys.executable, *map(str, cmd)], capture_output=True, text=True)
+    if r.returncode != 0:
+        raise SystemExit(f"benchmark: {' '.join(map(str, cmd))} failed: {r.stderr.strip()}")
+
+
+def degraded_log(args, name: str) -> Path:
+    """``degrade.py IN OUT --seed 1`` (its default odometry model) of a relations log, cached."""
+    tool = args.shared / "tools" / "degrade.py"
+    log = args.shared / "datasets" / name / f"{name}.clf.bz2"
+    d = cached(args.cache, tool, args.degrade_seed, name, log,
+               lambda tmp: _tool([tool, log, tmp / f"{name}.clf", "--seed", args.degrade_seed]))
+    return d / f"{name}.clf"
+
+
+def corrected_logs(datasets: Path) -> list[tuple[str, Path]]:
+    """(dataset folder name, path) of every GMapping-corrected log under ``datasets``."""
+    pat = re.compile(r"(\.gfs\.log|-corrected\.log(\.gz)?)$")
+    return sorted((p.parent.name, p) for p in datasets.rglob("*") if p.is_file() and pat.search(p.name))
+
+
+def sparse_log(args, name: str, corrected: Path) -> tuple[Path, Path]:
+    """(NAME.clf, NAME.gt.txt) that ``make_sparse.py OUTDIR LOG --seed 7`` writes, cached."""
+    tool = args.shared / "tools" / "make_sparse.py"
+    d = cached(args.cache, tool, args.sparse_seed, name, corrected,
+               lambda tmp: _tool([tool, tmp, corrected, "--seed", args.sparse_seed]))
+    clf, gt = sorted(d.glob("*.clf")), sorted(d.glob("*.gt.txt"))
+    if len(clf) != 1 or len(gt) != 1:
+        raise SystemExit(f"benchmark: {d}: expected one .clf and one .gt.txt from make_sparse.py")
+    return clf[0], gt[0]
+

@@ -1,0 +1,128 @@
+"""The markdown tables of BENCHMARKS.md: one per suite, issue 11's targets beside the results."""
+from __future__ import annotations
+
+CARTOGRAPHER = {  # Hess et al. 2016: Table II (abs trans m, abs rot deg, mean ± std), Table V (wall s)
+    "aces": {"trans": (0.0375, 0.0426), "rot": (0.373, 0.469), "wall_s": 41},
+    "intel": {"trans": (0.0229, 0.0239), "rot": (0.453, 1.335), "wall_s": 179},
+    "fr079": {"trans": (0.0452, 0.0354), "rot": (0.538, 0.718), "wall_s": 62},
+}
+
+
+TARGETS = {  # issue 11, "What it must show"
+    "degraded_trans_m": {n: c["trans"][0] for n, c in CARTOGRAPHER.items()},  # Cartographer on the clean log
+    "sparse_ate_rmse_m": 0.15,
+    "clinic": {"peak_rss_mb": 1024.0, "wall_s": 60.0, "health": "OK"},
+}
+
+
+def fmt(ms):
+    return f"{ms[0]:.4f} ± {ms[1]:.4f}"
+
+
+def loops_txt(s) -> str:
+    lc = s.get("loop_closure") or {}
+    return f"{lc.get('accepted', '—')} / {lc.get('in_final_graph', '—')} / {lc.get('candidates_searched', '—')}" if lc else "—"
+
+
+def health_txt(s) -> str:
+    h = s.get("health")
+    return str(h.get("status", "?")) if isinstance(h, dict) else "—"
+
+
+def _rel(m) -> str:
+    return f"{fmt((m['abs_trans_m']['mean'], m['abs_trans_m']['std']))} | {m['abs_rot_deg']['mean']:.3f} ± {m['abs_rot_deg']['std']:.3f}"
+
+
+def _pct(p) -> str:
+    """'100.0 % of 12' from a precision record of slam2d.eval.loops; '— of 0' when none was judged."""
+    n = p["true"] + p["false"]
+    return f"{100 * p['precision']:.1f} % of {n}" if p["precision"] is not None else "— of 0"
+
+
+def _met(ok) -> str:
+    return "—" if ok is None else ("yes" if ok else "**no**")
+
+
+def table(rows, args) -> str:
+    lines = ["| dataset | system | scans | data s | wall s | real-time × | peak RSS MB | trans abs m (mean ± std) | rot abs ° (mean ± std) | loops accepted / final / searched | precision (final graph) | health |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for row in rows:
+        n = row["dataset"]
+        s = row["slam2d"]
+        lo = row.get("loops")
+        prec = "—"
+        if lo:
+            own = lo["own"]["final_graph"]["precision"]
+            prec = f"{100 * own:.1f} % own" if own is not None else "—"
+            refp = lo.get("reference", {}).get("final_graph", {}).get("precision")
+            if refp is not None:
+                prec += f", {100 * refp:.1f} % ref"
+        lines.append(f"| {n} | slam2d ({s['mode']}) | {s['scans']} | {s['duration_s']:.1f} | {s['wall_s']:.1f} | "
+                     f"{s['real_time_factor']:.1f} | {s['peak_rss_mb']:.0f} | {_rel(s['relations'])} | "
+                     f"{loops_txt(s)} | {prec} | {health_txt(s)} |")
+        if "karto" in row and "relations" in row["karto"]:
+            k = row["karto"]
+            lines.append(f"| {n} | Karto peer (sequential) | {s['scans']} | {s['duration_s']:.1f} | {k['wall_s']:.1f} | "
+                         f"{s['duration_s'] / k['wall_s']:.1f} | {k['peak_rss_mb']:.0f} | {_rel(k['relations'])} | — | — | |")
+        om = row["odometry"]["relations"]
+        lines.append(f"| {n} | raw odometry | {s['scans']} | | | | | {_rel(om)} | | | |")
+        c = CARTOGRAPHER.get(n)
+        if c:
+            lines.append(f"| {n} | Cartographer (published, 6-core Xeon) | | | {c['wall_s']} | | | {fmt(c['trans'])} | "
+                         f"{c['rot'][0]:.3f} ± {c['rot'][1]:.3f} | | | |")
+    return "\n".join(lines)
+
+
+def degraded_table(rows) -> str:
+    lines = ["| dataset (degraded) | system | scans | wall s | peak RSS MB | trans abs m (mean ± std) | rot abs ° (mean ± std) | target: trans ≤ Cartographer clean | met | loops accepted / final / searched | health |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for row in rows:
+        n, s = row["dataset"], row["slam2d"]
+        target = TARGETS["degraded_trans_m"].get(n)
+        met = None if target is None else s["relations"]["abs_trans_m"]["mean"] <= target
+        tt = f"{target:.4f} m" if target is not None else "—"
+        lines.append(f"| {n} | slam2d ({s['mode']}) | {s['scans']} | {s['wall_s']:.1f} | {s['peak_rss_mb']:.0f} | "
+                     f"{_rel(s['relations'])} | {tt} | {_met(met)} | {loops_txt(s)} | {health_txt(s)} |")
+        k = row.get("karto", {})
+        if "relations" in k:
+            kmet = None if target is None else k["relations"]["abs_trans_m"]["mean"] <= target
+            lines.append(f"| {n} | Karto peer (sequential) | {s['scans']} | {k['wall_s']:.1f} | {k['peak_rss_mb']:.0f} | "
+                         f"{_rel(k['relations'])} | {tt} | {_met(kmet)} | — | |")
+    return "\n".join(lines)
+
+
+def sparse_table(rows) -> str:
+    target = TARGETS["sparse_ate_rmse_m"]
+    lines = [f"| dataset (sparse) | system | scans | wall s | peak RSS MB | ATE RMSE m | target ≤ {target} m | met | loops accepted / final / searched | loop precision vs ground truth, final graph (all accepted) | recall (revisit episodes closed) | health |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for row in rows:
+        n, s = row["dataset"], row["slam2d"]
+        rmse = s["ate"]["trans_m"]["rmse"]
+        g = s.get("loops_vs_ground_truth")
+        prec = rec = "—"
+        if g:
+            prec = f"{_pct(g['final_graph'])} ({_pct(g['accepted'])})"
+            rc = g["recall"]
+            rec = f"{rc['closed']} of {rc['episodes']}"
+        lines.append(f"| {n} | slam2d ({s['mode']}) | {s['scans']} | {s['wall_s']:.1f} | {s['peak_rss_mb']:.0f} | "
+                     f"{rmse:.3f} | ≤ {target} | {_met(rmse <= target)} | {loops_txt(s)} | {prec} | {rec} | {health_txt(s)} |")
+        k = row.get("karto", {})
+        if "ate" in k:
+            kr = k["ate"]["trans_m"]["rmse"]
+            lines.append(f"| {n} | Karto peer (sequential) | {s['scans']} | {k['wall_s']:.1f} | {k['peak_rss_mb']:.0f} | "
+                         f"{kr:.3f} | ≤ {target} | {_met(kr <= target)} | — | — | — | |")
+    return "\n".join(lines)
+
+
+def clinic_table(rows) -> str:
+    t = TARGETS["clinic"]
+    lines = [f"| dataset | scans | data s | wall s (target ≤ {t['wall_s']:.0f}) | peak RSS MB (target ≤ {t['peak_rss_mb']:.0f}) | loops accepted / final / searched | health (target {t['health']}) | met |",
+             "|---|---|---|---|---|---|---|---|"]
+    for row in rows:
+        s = row["slam2d"]
+        h = health_txt(s)
+        met = s["wall_s"] <= t["wall_s"] and s["peak_rss_mb"] <= t["peak_rss_mb"] and h == t["health"]
+        lines.append(f"| {row['dataset']} | {s['scans']} | {s['duration_s']:.1f} | {s['wall_s']:.1f} | {s['peak_rss_mb']:.0f} | "
+                     f"{loops_txt(s)} | {h} | {_met(met)} |")
+    return "\n".join(lines)
+
