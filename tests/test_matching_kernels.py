@@ -59,6 +59,32 @@ def test_sliding_max_oracle(width):
             assert got[r, c] == pad[r:r + width, c:c + width].max()
 
 
+@pytest.mark.parametrize("dtype", [np.float64, np.float32, np.uint8])
+def test_precomputation_stack_oracle(dtype):
+    """Level d holds the maximum of every 2^d block that overlaps the grid, in the grid's dtype:
+    it is padded by 2^d − 1 on the low side; cells outside the grid count as unknown."""
+    rng = np.random.default_rng(4)
+    raw = rng.random((11, 17)) ** 2
+    values = np.round(raw * 255).astype(np.uint8) if dtype == np.uint8 else raw.astype(dtype)
+    unknown = 100.0 if dtype == np.uint8 else 0.375
+    stack = PrecomputationStack(MatchGrid(values, np.zeros(2), 0.05, unknown), 4)
+    np.testing.assert_array_equal(stack.grid.values, values)
+    assert np.shares_memory(stack.grid.values, stack.data)  # level 0 is the stack's only copy
+    assert stack.nbytes == sum((11 + p) * (17 + p) for p in stack.offsets) * values.itemsize
+    for d in range(5):
+        wd, p = 1 << d, stack.offsets[d]
+        lev = stack.level(d)
+        assert p == wd - 1 and lev.shape == (11 + p, 17 + p) and lev.dtype == values.dtype
+        big = np.full((11 + 2 * wd, 17 + 2 * wd), unknown)
+        big[wd:wd + 11, wd:wd + 17] = values
+        for r in range(-p, 11):
+            for c in range(-p, 17):
+                assert lev[r + p, c + p] == big[r + wd:r + 2 * wd, c + wd:c + 2 * wd].max()
+    # an unknown value the dtype cannot hold is rounded up, so the levels stay upper bounds
+    zeros = PrecomputationStack(MatchGrid(np.zeros((3, 3), np.uint8), np.zeros(2), 0.05, 30.2), 1)
+    assert zeros.level(1)[0, 0] == 31 and zeros.level(1)[1, 1] == 0
+
+
 def bicubic_oracle(values, u, v, unknown):
     """Catmull-Rom as separable 1-D cubic convolution, plain numpy."""
     def w(t):
