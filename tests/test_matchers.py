@@ -4,12 +4,19 @@ import math
 import numpy as np
 import pytest
 
+from slam2d.backend.loop_closure import SubmapMatcher, loop_points
+from slam2d.config import SlamConfig
+from slam2d.frontend import LocalSlam
 from slam2d.geometry import compose
 from slam2d.grid.probability_grid import ProbabilityGrid
+from slam2d.io.mcap import McapLog
 from slam2d.io.simulator import floor_plan, raycast
 from slam2d.matching.real_time import RealTimeCorrelativeScanMatcher
 from slam2d.matching.refine import refine
-from slam2d.matching.search import MatchGrid
+from slam2d.matching.search import MatchGrid, SearchParameters
+
+from conftest import BUNDLED
+from test_matching_kernels import bnb_disagreement
 
 SEGS = floor_plan()
 ANGLES = -math.pi + 2 * math.pi / 360 * np.arange(360)
@@ -99,3 +106,54 @@ def test_refinement_goes_below_cell_size():
         errs_after.append(np.hypot(*(out - truth)[:2]))
     assert np.mean(errs_after) < 0.5 * np.mean(errs_before)
     assert np.mean(errs_after) < 0.012
+
+
+@pytest.fixture(scope="module")
+def sim_first_finished_submap():
+    """Local SLAM on the bundled simulator log up to its first finished submap (cropped to its
+    observed cells), with every inserted scan's local pose and loop-closure points."""
+    cfg = SlamConfig()
+    slam = LocalSlam(cfg, loop_closure=True)
+    nodes = []
+    for scan in McapLog(BUNDLED):
+        res = slam.add_scan(scan)
+        if res.inserted:
+            nodes.append((res.local_pose, loop_points(res.range_data.hits, cfg.loop_closure.voxel_filter_size)))
+        if slam.finished_submaps:
+            return cfg, slam.finished_submaps[0], nodes
+    raise AssertionError("no submap was finished")
+
+
+#: queries of the real-submap exactness test below
+SUBMAP_QUERIES = 60
+
+
+def test_loop_closure_search_is_exact_at_finished_submap_borders(sim_first_finished_submap):
+    """Branch-and-bound on a real finished submap (the loop-closure matcher's uint8 stack, default
+    depth) finds the exhaustive search's best score, bit for bit: 60 seeded random queries
+    (``SUBMAP_QUERIES``), 0.8 m / 4° windows, a third at the scans' own perturbed poses (their
+    points reach the cropped outer walls), a third moved to the grid's low corner, a third to its
+    high corner; each with min_score 0 and the default 0.55."""
+    cfg, submap, nodes = sim_first_finished_submap
+    m = SubmapMatcher(submap, cfg.loop_closure.branch_depth)
+    g = m.grid
+    size = np.array(g.values.shape[::-1]) * g.resolution
+    rng = np.random.default_rng(7)
+    bad = []
+    crossed_low = 0
+    for q in range(SUBMAP_QUERIES):
+        pose, pts = nodes[int(rng.integers(len(nodes)))]
+        initial = pose + [rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), rng.uniform(-0.05, 0.05)]
+        if q % 3 == 1:
+            initial[:2] = g.origin + rng.uniform(-2.0, 2.0, 2)
+        elif q % 3 == 2:
+            initial[:2] = g.origin + size + rng.uniform(-2.0, 2.0, 2)
+        params = SearchParameters.make(0.8, math.radians(4.0), g.resolution, pts)
+        cells = g.cells(pts, initial, params.angles)
+        crossed_low += int(cells.min() - params.linear_cells < 0)
+        for min_score in (0.0, cfg.loop_closure.min_score * 255.0):
+            why = bnb_disagreement(g, m.stack, cells, params.linear_cells, min_score, None, params.angles)
+            if why:
+                bad.append((q, min_score, why))
+    assert crossed_low >= SUBMAP_QUERIES // 2
+    assert not bad, f"{len(bad)} of {2 * SUBMAP_QUERIES} searches disagree, e.g. {bad[:3]}"

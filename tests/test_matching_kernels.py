@@ -59,6 +59,32 @@ def test_sliding_max_oracle(width):
             assert got[r, c] == pad[r:r + width, c:c + width].max()
 
 
+@pytest.mark.parametrize("dtype", [np.float64, np.float32, np.uint8])
+def test_precomputation_stack_oracle(dtype):
+    """Level d holds the maximum of every 2^d block that overlaps the grid, in the grid's dtype:
+    it is padded by 2^d − 1 on the low side; cells outside the grid count as unknown."""
+    rng = np.random.default_rng(4)
+    raw = rng.random((11, 17)) ** 2
+    values = np.round(raw * 255).astype(np.uint8) if dtype == np.uint8 else raw.astype(dtype)
+    unknown = 100.0 if dtype == np.uint8 else 0.375
+    stack = PrecomputationStack(MatchGrid(values, np.zeros(2), 0.05, unknown), 4)
+    np.testing.assert_array_equal(stack.grid.values, values)
+    assert np.shares_memory(stack.grid.values, stack.data)  # level 0 is the stack's only copy
+    assert stack.nbytes == sum((11 + p) * (17 + p) for p in stack.offsets) * values.itemsize
+    for d in range(5):
+        wd, p = 1 << d, stack.offsets[d]
+        lev = stack.level(d)
+        assert p == wd - 1 and lev.shape == (11 + p, 17 + p) and lev.dtype == values.dtype
+        big = np.full((11 + 2 * wd, 17 + 2 * wd), unknown)
+        big[wd:wd + 11, wd:wd + 17] = values
+        for r in range(-p, 11):
+            for c in range(-p, 17):
+                assert lev[r + p, c + p] == big[r + wd:r + 2 * wd, c + wd:c + 2 * wd].max()
+    # an unknown value the dtype cannot hold is rounded up, so the levels stay upper bounds
+    zeros = PrecomputationStack(MatchGrid(np.zeros((3, 3), np.uint8), np.zeros(2), 0.05, 30.2), 1)
+    assert zeros.level(1)[0, 0] == 31 and zeros.level(1)[1, 1] == 0
+
+
 def bicubic_oracle(values, u, v, unknown):
     """Catmull-Rom as separable 1-D cubic convolution, plain numpy."""
     def w(t):
@@ -159,3 +185,88 @@ def test_delta_penalty_matches_oracle():
     factor = np.exp(-np.square(0.7 * dist[None] + 2.0 * np.abs(angles)[:, None, None]))
     np.testing.assert_allclose(got, scores * factor, rtol=1e-6)
     assert got[2, w, w] == scores[2, w, w]  # the predicted pose is not penalized
+
+
+#: seeded random cases of the border property test below (all of them are checked)
+BORDER_CASES = 3000
+
+
+def _border_case(rng):
+    """A small grid (float32 or uint8, random unknown value) and a search whose window crosses a border.
+
+    Each axis puts the scan's cells near the low border, near the high border, or anywhere
+    (partly or wholly outside the grid included).
+    """
+    rows, cols = (int(n) for n in rng.integers(3, 40, 2))
+    depth = int(rng.integers(1, 6))
+    w = int(rng.integers(0, 14))
+    raw = rng.random((rows, cols)) ** 3
+    if rng.random() < 0.5:
+        values = np.round(raw * 255).astype(np.uint8)
+        unknown = float(rng.integers(0, 256))
+    else:
+        values = raw.astype(np.float32)
+        unknown = float(np.float32(rng.random()))
+    a_n = int(rng.integers(1, 5))
+    n = int(rng.integers(1, 25))
+    spread = int(rng.integers(1, max(rows, cols) + 1))
+    top = 1 << depth
+    center = []
+    for size in (cols, rows):
+        kind = rng.integers(3)
+        if kind == 0:
+            center.append(int(rng.integers(-w - top - spread, top + 1)))
+        elif kind == 1:
+            center.append(int(rng.integers(size - top - 1, size + w + top + spread)))
+        else:
+            center.append(int(rng.integers(-w - spread, size + w + spread)))
+    cells = (np.array(center) + rng.integers(-spread, spread + 1, (a_n, n, 2))).astype(np.int32)
+    angles = np.sort(rng.uniform(-0.2, 0.2, a_n))
+    pen = DeltaPenalty(rng.uniform(0, 3), rng.uniform(0, 5)) if rng.random() < 0.5 else None
+    return MatchGrid(values, np.zeros(2), 0.05, unknown), depth, cells, w, angles, pen
+
+
+def bnb_disagreement(grid, stack, cells, w, min_score, pen, angles):
+    """None when branch-and-bound agrees with exhaustive search, else a description.
+
+    Agreement: the same best score (bit for bit on uint8 grids without a penalty, else within
+    float rounding, as the exhaustive kernel sums in float32 and the B&B kernel in float64),
+    the returned pose scoring that best, and None exactly when nothing beats ``min_score``.
+    """
+    ex = exhaustive(grid, cells, w, pen, angles)
+    best = float(ex.max())
+    found = branch_and_bound(stack, cells, w, min_score, pen, angles)
+    if best <= min_score:
+        return None if found is None else f"found {found} though the best is {best} <= {min_score}"
+    if found is None:
+        return f"none found, exhaustive best {best}"
+    a, dx, dy, s = found
+    if not (0 <= a < cells.shape[0] and -w <= dx <= w and -w <= dy <= w):
+        return f"{found} outside the lattice"
+    exact = grid.values.dtype == np.uint8 and pen is None
+    tol = 0.0 if exact else 1e-5 * best
+    if abs(float(np.float32(s)) - best) > tol or abs(float(ex[a, dy + w, dx + w]) - best) > tol:
+        return f"B&B {s} at {found[:3]} (exhaustive there {ex[a, dy + w, dx + w]}), exhaustive best {best}"
+    return None
+
+
+def test_branch_and_bound_is_exact_across_borders():
+    """Property test, 3000 seeded random cases (``BORDER_CASES``): branch-and-bound finds the
+    exhaustive search's best score on small float32 and uint8 grids, depths 1-5, with and
+    without the delta penalty, a random unknown value (often above some cells), and search
+    windows that cross the low and the high borders or lie partly or wholly outside."""
+    rng = np.random.default_rng(12)
+    bad = []
+    crossed_low = 0
+    for case in range(BORDER_CASES):
+        grid, depth, cells, w, angles, pen = _border_case(rng)
+        stack = PrecomputationStack(grid, depth)
+        crossed_low += int(cells.min() - w < 0)
+        min_score = 0.0
+        if rng.random() < 0.3:  # a threshold below the best: the cut must not lose it
+            min_score = float(rng.uniform(0, 0.99)) * float(exhaustive(grid, cells, w, pen, angles).max())
+        why = bnb_disagreement(grid, stack, cells, w, min_score, pen, angles)
+        if why:
+            bad.append((case, why))
+    assert crossed_low > BORDER_CASES // 2
+    assert not bad, f"{len(bad)} of {BORDER_CASES} cases disagree, e.g. {bad[:3]}"

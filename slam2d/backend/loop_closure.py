@@ -4,7 +4,9 @@ the mean probability under the scan's points; matches above ``min_score`` are re
 cell size and become constraints.
 
 Precomputation grids are built once per finished submap and kept as uint8 (probability ×
-255), which bounds their memory; scores are reported in [0, 1].
+255), which bounds their memory (level d is padded by 2^d − 1 cells on the low side so that
+the search is exact across the submap's borders; level 0 is the matcher's only copy of the
+values); scores are reported in [0, 1].
 """
 from __future__ import annotations
 
@@ -35,8 +37,9 @@ class SubmapMatcher:
         g = submap.grid
         self.submap = submap
         q = np.clip(np.round(g.prob * 255.0), 0, 255).astype(np.uint8)
-        self.grid = MatchGrid(q, g.origin, g.resolution, float(round(g.unknown_probability * 255)))
-        self.stack = PrecomputationStack(self.grid, depth)
+        self.stack = PrecomputationStack(MatchGrid(q, g.origin, g.resolution, float(round(g.unknown_probability * 255))),
+                                         depth)
+        self.grid = self.stack.grid  # reads the stack's level 0: no second copy of the values
         self.prob = MatchGrid(g.prob, g.origin, g.resolution, g.unknown_probability)
         known = np.argwhere(g.known > 0)
         self.center_local = (g.origin + (known.mean(axis=0)[::-1] + 0.5) * g.resolution) if len(known) else g.origin

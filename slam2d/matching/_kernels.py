@@ -81,6 +81,28 @@ def _level_score(level, cells, a, dx, dy, unknown):
     return s / n
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _block_score(data, start, rows, cols, pad, cells, a, dx, dy, unknown):
+    """Mean over the points of the max-pooled value of their block at (dx, dy), one precomputation level.
+
+    The level is ``data[start:]`` as (rows + pad) × (cols + pad), padded by ``pad`` on the low
+    side: a block starting at grid cell (r, c) is element (r + pad, c + pad); blocks starting
+    outside that range lie wholly outside the grid and score ``unknown``.
+    """
+    h = rows + pad
+    wd = cols + pad
+    n = cells.shape[1]
+    s = 0.0
+    for i in range(n):
+        c = cells[a, i, 0] + dx + pad
+        r = cells[a, i, 1] + dy + pad
+        if r < 0 or r >= h or c < 0 or c >= wd:
+            s += unknown
+        else:
+            s += data[start + r * wd + c]
+    return s / n
+
+
 @njit(cache=True, nogil=True)
 def score_candidates(values, cells, cands, unknown):
     """Mean grid value for candidates (K, 3) = [angle index, dx, dy] (integer cells)."""
@@ -255,14 +277,16 @@ def _penalty(w_t, w_r, res, angle, x, y, width):
 
 
 @njit(cache=True, nogil=True)
-def branch_and_bound(levels, cells, angles, w, min_score, unknown, w_t, w_r, res):
+def branch_and_bound(data, starts, rows, cols, cells, angles, w, min_score, unknown, w_t, w_r, res):
     """Depth-first branch-and-bound (Hess et al. 2016, Algorithm 3) with an explicit stack.
 
-    ``levels[d]`` is the max-pooled grid of width 2^d; candidates are (angle, dx, dy) with
-    dx, dy in [-w, w]; children are visited best first and a subtree whose bound is not
-    above the best score so far is cut. Returns (angle index, dx, dy, score) or score < 0.
+    Level d of the precomputation stack (``search.PrecomputationStack``: ``data[starts[d]:]``,
+    padded by 2^d − 1 on the low side) holds the max-pooled grid of width 2^d; candidates are
+    (angle, dx, dy) with dx, dy in [-w, w]; children are visited best first and a subtree
+    whose bound is not above the best score so far is cut. Returns (angle index, dx, dy,
+    score) or score < 0.
     """
-    depth = levels.shape[0] - 1
+    depth = starts.shape[0] - 2
     top = 1 << depth
     n_off = (2 * w) // top + 1
     a_n = cells.shape[0]
@@ -278,7 +302,8 @@ def branch_and_bound(levels, cells, angles, w, min_score, unknown, w_t, w_r, res
                 cand[k, 0] = a
                 cand[k, 1] = x
                 cand[k, 2] = y
-                sc[k] = _level_score(levels[depth], cells, a, x, y, unknown) * _penalty(w_t, w_r, res, angles[a], x, y, top)
+                sc[k] = _block_score(data, starts[depth], rows, cols, top - 1, cells, a, x, y, unknown) * _penalty(
+                    w_t, w_r, res, angles[a], x, y, top)
                 k += 1
     order = np.argsort(sc)  # ascending: pushed so that the best is popped first
     cap = k0 + 4 * (depth + 1) * 4 + 16
@@ -323,7 +348,7 @@ def branch_and_bound(levels, cells, angles, w, min_score, unknown, w_t, w_r, res
                 if cx <= w and cy <= w:
                     kx[m] = cx
                     ky[m] = cy
-                    ks[m] = _level_score(levels[d - 1], cells, a, cx, cy, unknown) * _penalty(
+                    ks[m] = _block_score(data, starts[d - 1], rows, cols, half - 1, cells, a, cx, cy, unknown) * _penalty(
                         w_t, w_r, res, angles[a], cx, cy, half)
                     m += 1
         # push ascending so the best child is popped first

@@ -6,10 +6,13 @@ that the farthest point moves by at most one cell; the translation lattice is th
 cells. Candidates are (angle index, dx, dy) in integer cells around the predicted pose.
 
 Branch-and-bound (Hess et al. 2016, Sec. V-B/C): precomputation grids hold the maximum of
-the 2^d × 2^d cells starting at each cell, so a candidate at depth d bounds the score of
-every one of its descendants; children are scored, sorted best first and visited depth
-first; a subtree whose bound is not above the best score so far is cut. The result equals
-the exhaustive search over the same lattice.
+the 2^d × 2^d cells starting at each cell — also at the cells left of and below the grid
+whose blocks still reach into it (Cartographer pads each level by 2^d − 1 cells on the low
+side) — so a candidate at depth d bounds the score of every one of its descendants, near
+the borders too; children are scored, sorted best first and visited depth first; a subtree
+whose bound is not above the best score so far is cut. The result equals the exhaustive
+search over the same lattice: the same best score (poses differ only between exact ties),
+tested on random grids and on finished submaps with windows across their borders.
 """
 from __future__ import annotations
 
@@ -60,27 +63,65 @@ class MatchGrid:
 
 
 class PrecomputationStack:
-    """Max-pooled grids of widths 1, 2, 4, …, 2^depth (Hess et al. 2016, Sec. V-C), one 3-D array
-    in the grid's dtype (uint8 for finished submaps)."""
+    """Max-pooled grids of widths 1, 2, 4, …, 2^depth (Hess et al. 2016, Sec. V-C) in the grid's dtype
+    (uint8 for finished submaps), stored one after the other in one flat array.
+
+    Level d holds, for every block of 2^d × 2^d cells that overlaps the grid, the maximum over
+    the block (cells outside the grid count as ``unknown``); the block starting at grid cell
+    (r, c) is ``level(d)[r + offsets[d], c + offsets[d]]``. As in Cartographer's
+    ``PrecomputationGrid2D``, level d is padded on the low side by ``offsets[d]`` = 2^d − 1 rows
+    and columns, so blocks that start left of or below the grid but still cover it read their
+    true maximum; blocks that start beyond the padded level lie wholly outside and score
+    ``unknown``. Level 0 is the grid itself: ``self.grid`` reads it, so a caller may drop its own
+    copy of the values.
+    """
 
     def __init__(self, grid: MatchGrid, depth: int):
-        self.grid = grid
+        values = grid.values
+        rows, cols = values.shape
         self.depth = depth
-        self.array = np.empty((depth + 1,) + grid.values.shape, dtype=grid.values.dtype)
-        self.array[0] = grid.values
+        self.shape = (rows, cols)
+        self.offsets = tuple((1 << d) - 1 for d in range(depth + 1))
+        sizes = [(rows + p) * (cols + p) for p in self.offsets]
+        self.starts = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        self.data = np.empty(int(self.starts[-1]), dtype=values.dtype)
+        self.level(0)[:, :] = values
+        fill = _upper_fill(grid.unknown, values.dtype)
         for d in range(1, depth + 1):
-            self.array[d] = sliding_max(grid.values, 1 << d, grid.unknown)
+            p = self.offsets[d]
+            padded = np.full((rows + p, cols + p), fill, dtype=values.dtype)
+            padded[p:, p:] = values
+            sliding_max(padded, 1 << d, fill, out=self.level(d))
+        self.grid = MatchGrid(self.level(0), grid.origin, grid.resolution, grid.unknown)
+
+    def level(self, d: int) -> np.ndarray:
+        """Level d as a 2-D view, (rows + offsets[d], cols + offsets[d])."""
+        rows, cols = self.shape
+        p = self.offsets[d]
+        return self.data[self.starts[d]:self.starts[d + 1]].reshape(rows + p, cols + p)
 
     @property
     def nbytes(self) -> int:
-        return self.array.nbytes
+        return self.data.nbytes
 
 
-def sliding_max(values: np.ndarray, width: int, fill: float) -> np.ndarray:
-    """out[r, c] = max(values[r:r+width, c:c+width]) (cells beyond the array count as ``fill``)."""
+def _upper_fill(unknown: float, dtype) -> np.generic:
+    """``unknown`` in ``dtype``, rounded up where it is not representable (the levels stay upper bounds)."""
+    dtype = np.dtype(dtype)
+    if np.issubdtype(dtype, np.integer):
+        v = math.ceil(unknown)
+        if not np.iinfo(dtype).min <= v <= np.iinfo(dtype).max:
+            raise ValueError(f"unknown value {unknown} does not fit the grid's {dtype}")
+        return dtype.type(v)
+    v = dtype.type(unknown)
+    return v if float(v) >= unknown else np.nextafter(v, dtype.type(np.inf))
+
+
+def sliding_max(values: np.ndarray, width: int, fill: float, out: np.ndarray | None = None) -> np.ndarray:
+    """out[r, c] = max(values[r:r+width, c:c+width]) (cells beyond the array count as ``fill``), in values' dtype."""
     from scipy.ndimage import maximum_filter  # global SLAM only: local runs skip its import time
 
-    return maximum_filter(values, size=width, origin=-(width // 2), mode="constant", cval=fill).astype(np.float32)
+    return maximum_filter(values, size=width, origin=-(width // 2), mode="constant", cval=fill, output=out)
 
 
 @dataclass
@@ -110,15 +151,20 @@ def branch_and_bound(stack: PrecomputationStack, cells: np.ndarray, linear_cells
                      penalty: DeltaPenalty | None = None, angles: np.ndarray | None = None):
     """Best (angle index, dx, dy, score) with score > min_score, or None. Exact over the lattice.
 
-    With a penalty, a block's bound is its max-pooled score times the largest penalty
-    factor in the block, which still bounds every descendant. The search runs in a numba
-    kernel (explicit stack, children best first).
+    Exact means the exhaustive search's best score (scores are sums of non-negative grid
+    values; this kernel sums in float64, ``exhaustive`` in float32); among exactly tied poses
+    either may be returned. With a penalty, a block's bound is its max-pooled score times the
+    largest penalty factor in the block (at the block's point nearest the prediction), which
+    still bounds every descendant. The search runs in a numba kernel (explicit stack,
+    children best first).
     """
     w_t = penalty.translation_weight if penalty is not None else 0.0
     w_r = penalty.rotation_weight if penalty is not None else 0.0
     ang = np.zeros(cells.shape[0]) if angles is None else np.ascontiguousarray(angles, dtype=np.float64)
-    a, x, y, s = _kernels.branch_and_bound(stack.array, cells, ang, int(linear_cells), float(min_score),
-                                           float(stack.grid.unknown), float(w_t), float(w_r), float(stack.grid.resolution))
+    rows, cols = stack.shape
+    a, x, y, s = _kernels.branch_and_bound(stack.data, stack.starts, rows, cols, cells, ang, int(linear_cells),
+                                           float(min_score), float(stack.grid.unknown), float(w_t), float(w_r),
+                                           float(stack.grid.resolution))
     if a < 0:
         return None
     return int(a), int(x), int(y), float(s)
