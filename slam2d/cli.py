@@ -174,7 +174,7 @@ def cmd_run(args) -> int:
         from slam2d.health import assess
 
         t_h = time.perf_counter()
-        summary["health"] = assess(grid, result.nodes, result.poses, summary.get("local_slam"), summary.get("loop_closure"))
+        summary["health"] = assess(cfg, result.nodes, result.poses, summary.get("local_slam"), summary.get("loop_closure"))
         summary["timings"]["health_s"] = round(time.perf_counter() - t_h, 3)
         out.write_json("summary.json", summary)
         out.commit()

@@ -70,6 +70,77 @@ class PoseExtrapolator:
         self.last_pose, self.last_time, self.last_odom = np.asarray(pose, dtype=float), time_s, odom
 
 
+#: points matched are those the submap has seen, unless fewer than this share of them
+MIN_SEEN_SHARE = 0.3
+#: a translation direction is degenerate when the scan's information along it is below this share of the other's
+DEGENERATE_RATIO = 0.03
+#: a point's tangent runs between its k-th neighbours on either side (the smallest k of these)
+#: that lie between NORMAL_MIN_BASELINE (shorter baselines are dominated by range noise) and
+#: NORMAL_NEIGHBOUR_GAP (farther apart they lie on different surfaces) [m]
+NORMAL_NEIGHBOURS = (1, 2, 4, 8)
+NORMAL_MIN_BASELINE = 0.15
+NORMAL_NEIGHBOUR_GAP = 1.0
+
+
+def seen_points(grid, pose, points: np.ndarray) -> np.ndarray:
+    """The points that fall on cells the submap has observed, at ``pose``.
+
+    A point beyond everything the submap saw can only lower the score, so a scan that reaches
+    past the submap's edge (a corridor entered for the first time) is pulled back toward
+    the known part, where every point scores. Leaving such points out removes that bias; if
+    too few points remain (a new area), all are kept.
+    """
+    known = grid.known
+    rows, cols = known.shape
+    if rows == 0 or len(points) == 0:
+        return points
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    inv = 1.0 / grid.resolution
+    ci = np.floor((pose[0] + c * points[:, 0] - s * points[:, 1] - grid.origin[0]) * inv).astype(np.int64)
+    ri = np.floor((pose[1] + s * points[:, 0] + c * points[:, 1] - grid.origin[1]) * inv).astype(np.int64)
+    inside = (ci >= 0) & (ci < cols) & (ri >= 0) & (ri < rows)
+    seen = np.zeros(len(points), dtype=bool)
+    seen[inside] = known[ri[inside], ci[inside]] > 0
+    if seen.sum() < max(3, MIN_SEEN_SHARE * len(points)):
+        return points
+    return points[seen]
+
+
+def degenerate_direction(points: np.ndarray) -> np.ndarray | None:
+    """The unit x/y direction (tracking frame) along which the scan's geometry does not constrain
+    its translation, else None.
+
+    Point-to-line information of the scan (Zhang, Kaess, Singh 2016, "On degeneracy of
+    optimization-based state estimation problems"): each point's surface normal, from its
+    neighbours in beam order, constrains translation along that normal; Σ n nᵀ with one
+    eigenvalue far below the other means a corridor without visible ends, where matching can
+    only slide along the walls.
+    """
+    if len(points) < 10:
+        return None
+    n = len(points)
+    tangent = np.zeros((n, 2))
+    have = np.zeros(n, dtype=bool)
+    for k in NORMAL_NEIGHBOURS:  # per point, the nearest neighbours far enough apart
+        if 2 * k >= n:
+            break
+        d = points[2 * k:] - points[:-2 * k]
+        length = np.hypot(d[:, 0], d[:, 1])
+        ok = (length > NORMAL_MIN_BASELINE) & (length < NORMAL_NEIGHBOUR_GAP) & ~have[k:n - k]
+        idx = np.flatnonzero(ok) + k
+        tangent[idx] = d[ok] / length[ok, None]
+        have[idx] = True
+    if have.sum() < 10:
+        return None
+    t = tangent[have]
+    info = np.array([[np.dot(t[:, 1], t[:, 1]), -np.dot(t[:, 0], t[:, 1])],
+                     [-np.dot(t[:, 0], t[:, 1]), np.dot(t[:, 0], t[:, 0])]]) / len(t)
+    w, v = np.linalg.eigh(info)
+    if w[0] >= DEGENERATE_RATIO * w[1]:
+        return None
+    return v[:, 0]
+
+
 class LocalSlam:
     name = "local"
 
@@ -97,6 +168,7 @@ class LocalSlam:
         self.num_recovered = 0
         self.num_untrusted = 0
         self.num_forced = 0
+        self.num_degenerate = 0
         self.untrusted_in_a_row = 0
         self.scores: list[float] = []
         self.recent_scores: deque[float] = deque(maxlen=RECENT_SCORES)
@@ -163,6 +235,8 @@ class LocalSlam:
             grid = submap.match_grid()
             t1 = time.perf_counter()
             rt = self.cfg.real_time_matcher
+            full_points = points
+            points = seen_points(submap.grid, predicted, points)
             lin, ang = self.windows(self.extrapolator.motion(predicted))
             m = self.matcher.match(grid, predicted, points, linear_window=lin, angular_window=ang)
             typical = self._typical_score()
@@ -188,6 +262,13 @@ class LocalSlam:
                         pose, _ = refine(submap.probability_grid(), pose, points, r.occupied_space_weight, r.translation_weight,
                                          r.rotation_weight, r.max_iterations)
                         timings["refine"] = (time.perf_counter() - t2) * 1e3
+                    along = degenerate_direction(full_points)
+                    if along is not None:  # the scan cannot tell poses apart along it: keep the prediction's
+                        c, s_ = math.cos(pose[2]), math.sin(pose[2])
+                        along = np.array([c * along[0] - s_ * along[1], s_ * along[0] + c * along[1]])
+                        pose = np.array(pose, dtype=float)
+                        pose[:2] -= along * float(along @ (pose[:2] - predicted[:2]))
+                        self.num_degenerate += 1
                     self.num_matched += 1
                     self.num_escalated += m.escalated
                     self.scores.append(score)
@@ -224,7 +305,8 @@ class LocalSlam:
         timings["total"] = (time.perf_counter() - t0) * 1e3
         return MatchingResult(scan.timestamp, pose, rd, inserted, score, timings,
                               active_submap=self.submaps.matching_submap, finished_submaps=finished,
-                              inserted_into=inserted_into, match=kept_match, points=points, quality=quality)
+                              inserted_into=inserted_into, match=kept_match, points=points if submap is None else full_points,
+                              quality=quality)
 
     def all_submaps(self):
         return list(self.finished_submaps) + list(self.submaps.submaps)
@@ -235,6 +317,7 @@ class LocalSlam:
                                "wide_searches": self.num_escalated,
                                "recovery_searches": self.num_recovery_searches, "recovered": self.num_recovered,
                                "untrusted": self.num_untrusted, "inserted_untrusted": self.num_forced,
+                               "degenerate": self.num_degenerate,
                                "submaps": self.submaps.count, "finished_submaps": len(self.finished_submaps),
                                "score_mean": round(float(s.mean()), 4), "score_p5": round(float(np.percentile(s, 5)), 4)}}
 

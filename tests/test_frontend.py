@@ -25,3 +25,96 @@ def test_local_only_run_finishes_submaps_at_the_local_only_size(tmp_path):
     # a submap starts every 25 insertions and is finished after 2 × 25
     assert all(s.num_range_data == 50 for s in tracker.finished_submaps)
     assert tracker.submaps.count == tracker.num_inserted // 25 + (tracker.num_inserted % 25 > 0)
+
+
+# ---- robustness: failure detection, recovery, degenerate scenes ----
+import math
+
+import numpy as np
+import pytest
+
+from slam2d.geometry import between, compose
+
+
+def _bundled_scans(n):
+    from conftest import BUNDLED
+    from slam2d.io.source import open_source
+
+    out = []
+    for s in open_source(BUNDLED):
+        out.append(s)
+        if len(out) == n:
+            break
+    return out
+
+
+def _rel_error(a0, a1, g0, g1):
+    e = between(between(g0, g1), between(a0, a1))
+    return math.hypot(e[0], e[1]), abs(math.degrees(e[2]))
+
+
+def _run(scans, cfg=None):
+    tracker = LocalSlam(cfg or config_from_dict({}), loop_closure=True)
+    return tracker, [tracker.add_scan(s).local_pose for s in scans]
+
+
+def test_recovers_from_an_injected_30_degree_heading_error():
+    """From scan K on, the odometry turns by 30° more than the robot did (a slipping wheel in a
+    fast turn). Wider than the largest real-time window (10°): only the recovery search finds it."""
+    scans = _bundled_scans(260)
+    k = 200
+    jump = np.array([0.0, 0.0, math.radians(30.0)])
+    for s in scans[k:]:
+        # the odometry frame rotates by 30° about the robot's odometry pose at scan k-1
+        s.odom_pose = compose(compose(scans[k - 1].odom_pose, jump), between(scans[k - 1].odom_pose, s.odom_pose))
+    tracker, poses = _run(scans)
+    assert tracker.num_recovered >= 1
+    for j in (k, k + 20, len(scans) - 1):
+        dt, dr = _rel_error(poses[k - 1], poses[j], scans[k - 1].ground_truth, scans[j].ground_truth)
+        assert dt < 0.1 and dr < 1.0, (j, dt, dr)
+
+
+def test_recovers_from_a_two_second_gap_without_odometry():
+    """No odometry (constant-velocity prediction) and 2 s of scans missing while the robot turns
+    and drives: the prediction is far off; the scan after the gap is still placed right."""
+    scans = _bundled_scans(320)
+    for s in scans:
+        s.odom_pose = None
+    t_gap = scans[250].timestamp
+    kept = [s for s in scans if not (t_gap <= s.timestamp < t_gap + 2.0)]
+    after = next(i for i, s in enumerate(kept) if s.timestamp >= t_gap + 2.0)
+    tracker, poses = _run(kept)
+    for j in (after, after + 10, len(kept) - 1):
+        dt, dr = _rel_error(poses[after - 1], poses[j], kept[after - 1].ground_truth, kept[j].ground_truth)
+        assert dt < 0.1 and dr < 1.0, (j, dt, dr)
+
+
+def test_featureless_corridor_follows_the_prediction(monkeypatch):
+    """In a corridor whose ends are out of range every pose along it matches equally; the
+    match must keep the prediction's position along it instead of sliding back to where the
+    submap was made (which it did: 0.04 m travelled of 60)."""
+    import slam2d.io.simulator as sim
+
+    monkeypatch.setattr(sim, "floor_plan", lambda: np.array([[0.0, -1.0, 100.0, -1.0], [0.0, 1.0, 100.0, 1.0]]))
+    monkeypatch.setattr(sim, "WAYPOINTS", [(20.0, 0.0), (80.0, 0.0)])
+    scans = list(sim.simulate(sim.SimConfig(seed=1, odom_scale_error=0.03)))
+    tracker, poses = _run(scans)
+    est = poses[-1][0] - poses[0][0]
+    odo = scans[-1].odom_pose[0] - scans[0].odom_pose[0]
+    assert abs(est - odo) < 0.02 * odo  # along the corridor: the odometry's travel
+    assert abs(poses[-1][1]) < 0.1 and abs(math.degrees(poses[-1][2])) < 1.0  # across and heading: matched
+    assert tracker.num_degenerate > 0.9 * len(scans)
+
+
+def test_degenerate_direction_of_scan_geometry():
+    from slam2d.frontend import degenerate_direction
+
+    rng = np.random.default_rng(0)
+    x = np.linspace(-10, 10, 400)
+    corridor = np.c_[np.r_[x, x[::-1]], np.r_[np.full(400, -1.0), np.full(400, 1.0)] + rng.normal(0, 0.01, 800)]
+    a = 0.7  # a corridor along 0.7 rad is degenerate along 0.7 rad
+    rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    d = degenerate_direction(corridor @ rot.T)
+    assert d is not None and abs(abs(d @ [math.cos(a), math.sin(a)]) - 1.0) < 1e-3
+    room = np.r_[corridor[:400], np.c_[np.full(100, 10.0), np.linspace(-1, 1, 100)]]  # an end wall in sight
+    assert degenerate_direction(room) is None
