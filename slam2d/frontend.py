@@ -70,40 +70,14 @@ class PoseExtrapolator:
         self.last_pose, self.last_time, self.last_odom = np.asarray(pose, dtype=float), time_s, odom
 
 
-#: points matched are those the submap has seen, unless fewer than this share of them
-MIN_SEEN_SHARE = 0.3
 #: a translation direction is degenerate when the scan's information along it is below this share of the other's
-DEGENERATE_RATIO = 0.03
+DEGENERATE_RATIO = 0.01
 #: a point's tangent runs between its k-th neighbours on either side (the smallest k of these)
 #: that lie between NORMAL_MIN_BASELINE (shorter baselines are dominated by range noise) and
 #: NORMAL_NEIGHBOUR_GAP (farther apart they lie on different surfaces) [m]
 NORMAL_NEIGHBOURS = (1, 2, 4, 8)
 NORMAL_MIN_BASELINE = 0.15
 NORMAL_NEIGHBOUR_GAP = 1.0
-
-
-def seen_points(grid, pose, points: np.ndarray) -> np.ndarray:
-    """The points that fall on cells the submap has observed, at ``pose``.
-
-    A point beyond everything the submap saw can only lower the score, so a scan that reaches
-    past the submap's edge (a corridor entered for the first time) is pulled back toward
-    the known part, where every point scores. Leaving such points out removes that bias; if
-    too few points remain (a new area), all are kept.
-    """
-    known = grid.known
-    rows, cols = known.shape
-    if rows == 0 or len(points) == 0:
-        return points
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    inv = 1.0 / grid.resolution
-    ci = np.floor((pose[0] + c * points[:, 0] - s * points[:, 1] - grid.origin[0]) * inv).astype(np.int64)
-    ri = np.floor((pose[1] + s * points[:, 0] + c * points[:, 1] - grid.origin[1]) * inv).astype(np.int64)
-    inside = (ci >= 0) & (ci < cols) & (ri >= 0) & (ri < rows)
-    seen = np.zeros(len(points), dtype=bool)
-    seen[inside] = known[ri[inside], ci[inside]] > 0
-    if seen.sum() < max(3, MIN_SEEN_SHARE * len(points)):
-        return points
-    return points[seen]
 
 
 def degenerate_direction(points: np.ndarray) -> np.ndarray | None:
@@ -169,6 +143,7 @@ class LocalSlam:
         self.num_untrusted = 0
         self.num_forced = 0
         self.num_degenerate = 0
+        self.num_weak = 0
         self.untrusted_in_a_row = 0
         self.scores: list[float] = []
         self.recent_scores: deque[float] = deque(maxlen=RECENT_SCORES)
@@ -211,6 +186,7 @@ class LocalSlam:
         # the score surface around the recovered peak: margin and covariance, as for a normal match
         around = self.matcher._match(grid, best.pose, points, 0.0, 2 * grid.resolution, 2 * self._angular_step(grid, points))
         around.escalated = True
+        around.on_edge = best.on_edge  # on the edge of the recovery window: the true pose may lie beyond
         return around
 
     @staticmethod
@@ -235,8 +211,6 @@ class LocalSlam:
             grid = submap.match_grid()
             t1 = time.perf_counter()
             rt = self.cfg.real_time_matcher
-            full_points = points
-            points = seen_points(submap.grid, predicted, points)
             lin, ang = self.windows(self.extrapolator.motion(predicted))
             m = self.matcher.match(grid, predicted, points, linear_window=lin, angular_window=ang)
             typical = self._typical_score()
@@ -248,45 +222,57 @@ class LocalSlam:
                 wide = self._recover(grid, scan, predicted, points)
                 timings["recovery"] = (time.perf_counter() - t_rec) * 1e3
                 self.num_recovery_searches += 1
-                if wide is not None and (m is None or wide.score > m.score):
+                # a recovered pose replaces the match only when it is trusted where the match was not:
+                # a wide window always holds some pose that scores a little higher, often a wrong one
+                if wide is not None and (m is None or (wide.score > m.score and (limit is None or wide.score >= limit))):
                     m = wide
                     self.num_recovered += 1
             t2 = time.perf_counter()
             timings["match"] = (t2 - t1) * 1e3
             if m is not None:
-                trusted = limit is None or m.score >= limit
-                if trusted or self.untrusted_in_a_row >= rt.max_untrusted_in_a_row:
-                    pose, score, match = m.pose, m.score, m
-                    if self.cfg.refine.enabled:
-                        r = self.cfg.refine
-                        pose, _ = refine(submap.probability_grid(), pose, points, r.occupied_space_weight, r.translation_weight,
-                                         r.rotation_weight, r.max_iterations)
-                        timings["refine"] = (time.perf_counter() - t2) * 1e3
-                    along = degenerate_direction(full_points)
-                    if along is not None:  # the scan cannot tell poses apart along it: keep the prediction's
-                        c, s_ = math.cos(pose[2]), math.sin(pose[2])
-                        along = np.array([c * along[0] - s_ * along[1], s_ * along[0] + c * along[1]])
-                        pose = np.array(pose, dtype=float)
-                        pose[:2] -= along * float(along @ (pose[:2] - predicted[:2]))
-                        self.num_degenerate += 1
+                trusted = not m.on_edge and (limit is None or m.score >= limit)
+                pose, score, match = m.pose, m.score, m
+                if self.cfg.refine.enabled:
+                    r = self.cfg.refine
+                    pose, _ = refine(submap.probability_grid(), pose, points, r.occupied_space_weight, r.translation_weight,
+                                     r.rotation_weight, r.max_iterations)
+                    timings["refine"] = (time.perf_counter() - t2) * 1e3
+                along = degenerate_direction(points)
+                if along is not None:  # the scan cannot tell poses apart along it: keep the prediction's
+                    c, s_ = math.cos(pose[2]), math.sin(pose[2])
+                    along = np.array([c * along[0] - s_ * along[1], s_ * along[0] + c * along[1]])
+                    pose = np.array(pose, dtype=float)
+                    pose[:2] -= along * float(along @ (pose[:2] - predicted[:2]))
+                    self.num_degenerate += 1
+                self.num_escalated += m.escalated
+                self.scores.append(score)
+                if trusted:
+                    quality = "trusted"
                     self.num_matched += 1
-                    self.num_escalated += m.escalated
-                    self.scores.append(score)
-                    quality = "trusted" if trusted else "forced"
-                    if trusted:
-                        self.recent_scores.append(score)
-                        self.untrusted_in_a_row = 0
-                    else:  # several in a row: new ground rather than a failed match; map it
-                        self.num_forced += 1
-                        self.untrusted_in_a_row = 0
+                    self.recent_scores.append(score)
+                    self.untrusted_in_a_row = 0
+                elif not m.on_edge:
+                    # a clear peak inside the window that scores low: the scan sees new ground or little
+                    # of the submap; mapped, counted, and loose in the pose graph (no covariance)
+                    quality = "weak"
+                    self.num_matched += 1
+                    self.num_weak += 1
+                elif self.untrusted_in_a_row >= rt.max_untrusted_in_a_row:
+                    # on the edge several times in a row: the robot did move that way; map it
+                    quality = "forced"
+                    self.num_matched += 1
+                    self.num_forced += 1
+                    self.untrusted_in_a_row = 0
                 else:
                     quality = "untrusted"
             else:
                 quality = "untrusted"
-            if quality == "untrusted":  # carry on from the prediction; nothing goes into the submaps
+            if quality == "untrusted":
+                # the best pose lies on the edge of every window searched, so the true one lies beyond
+                # it: carry on from the prediction and keep the scan out of the submaps
+                pose, match = predicted, None
                 self.num_untrusted += 1
                 self.untrusted_in_a_row += 1
-                score = None if m is None else m.score
         pose = np.array([pose[0], pose[1], math.remainder(pose[2], 2 * math.pi)])
         self.extrapolator.add(scan.timestamp, pose, scan.odom_pose)
         inserted = quality != "untrusted" and not self.filter.is_similar(scan.timestamp, pose)
@@ -305,7 +291,7 @@ class LocalSlam:
         timings["total"] = (time.perf_counter() - t0) * 1e3
         return MatchingResult(scan.timestamp, pose, rd, inserted, score, timings,
                               active_submap=self.submaps.matching_submap, finished_submaps=finished,
-                              inserted_into=inserted_into, match=kept_match, points=points if submap is None else full_points,
+                              inserted_into=inserted_into, match=kept_match, points=points,
                               quality=quality)
 
     def all_submaps(self):
@@ -316,7 +302,7 @@ class LocalSlam:
         return {"local_slam": {"matched_scans": self.num_matched, "inserted_scans": self.num_inserted,
                                "wide_searches": self.num_escalated,
                                "recovery_searches": self.num_recovery_searches, "recovered": self.num_recovered,
-                               "untrusted": self.num_untrusted, "inserted_untrusted": self.num_forced,
+                               "untrusted": self.num_untrusted, "inserted_untrusted": self.num_forced, "weak": self.num_weak,
                                "degenerate": self.num_degenerate,
                                "submaps": self.submaps.count, "finished_submaps": len(self.finished_submaps),
                                "score_mean": round(float(s.mean()), 4), "score_p5": round(float(np.percentile(s, 5)), 4)}}

@@ -169,3 +169,16 @@ def test_many_scans_striped_equal_one_at_a_time(threads):
     np.testing.assert_array_equal(pa, pb)
     np.testing.assert_array_equal(ka, kb)
     assert (la > 0).sum() > 500
+
+
+def test_frozen_grid_keeps_its_probabilities_without_log_odds():
+    g = ProbabilityGrid(0.05)
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        g.insert(np.zeros(2), rng.uniform(-3, 3, (50, 2)), rng.uniform(-4, 4, (20, 2)))
+    before = g.probability(unknown_value=np.nan)
+    r0, r1, c0, c1 = g.known_bounds()
+    g.freeze(r0, r1, c0, c1)
+    assert g.logodds.size == 0 and g.shape == (r1 - r0, c1 - c0)
+    # the incrementally kept probabilities may differ from a fresh log-odds conversion by one float32 ulp
+    np.testing.assert_allclose(g.probability(unknown_value=np.nan), before[r0:r1, c0:c1], rtol=0, atol=1e-6)

@@ -70,7 +70,7 @@ class ProbabilityGrid:
 
     @property
     def shape(self):
-        return self.logodds.shape
+        return self.prob.shape
 
     @property
     def known(self) -> np.ndarray:
@@ -82,7 +82,8 @@ class ProbabilityGrid:
     def freeze(self, r0, r1, c0, c1):
         """Crop to [r0:r1, c0:c1] and drop the insertion buffers (no more inserts)."""
         known = np.ascontiguousarray(self.known[r0:r1, c0:c1])
-        self.logodds = np.ascontiguousarray(self.logodds[r0:r1, c0:c1])
+        # matching and export read probabilities only: the log-odds go (a quarter of a finished submap's bytes)
+        self.logodds = np.zeros((0, 0), dtype=np.float32)
         self.prob = np.ascontiguousarray(self.prob[r0:r1, c0:c1])
         # a frozen grid is read, never matched by local SLAM again: its likelihood field goes
         self.field_sigma = None
@@ -183,6 +184,8 @@ class ProbabilityGrid:
         return f.astype(np.float32)
 
     def probability(self, unknown_value: float = 0.5) -> np.ndarray:
+        if self._known is not None:  # frozen: ``prob`` holds every known cell's probability
+            return np.where(self._known > 0, self.prob, np.float32(unknown_value)).astype(np.float32)
         out = np.empty(self.shape, dtype=np.float32)
         if out.size:
             _kernels.logodds_to_probability(self.logodds, self.known, np.float32(unknown_value), out)
