@@ -19,9 +19,9 @@ from __future__ import annotations
 import numpy as np
 
 #: a scan agrees with the map when at least this share of its hits lies on occupied cells
-SCAN_AGREEMENT = 0.8
+SCAN_AGREEMENT = 0.7
 #: shares of scans that agree below which the map is flagged
-WARN_AGREEING, BROKEN_AGREEING = 0.9, 0.75
+WARN_AGREEING, BROKEN_AGREEING = 0.95, 0.8
 #: shares of matched scans that were not trusted above which the map is flagged
 WARN_UNTRUSTED, BROKEN_UNTRUSTED = 0.01, 0.05
 
