@@ -105,3 +105,32 @@ def test_local_slam_accuracy_regression(tmp_path, name, bound):
     m = relations_metric(t, poses, read_relations(relations(name)))
     assert m["abs_trans_m"]["mean"] <= bound
     assert json.loads((out / "summary.json").read_text())["mode"] == "local"
+
+
+def test_fr_clinic_no_return_readings_never_become_hits():
+    """fr-clinic writes no-returns as 81.83 m and as 81.91 m (header max_range 81.9): both are
+    no-returns, and on a slice of the log no beam at either value yields a hit."""
+    from slam2d.config import RangeFilterConfig
+    from slam2d.io.carmen import CarmenLog
+    from slam2d.range_data import range_data
+
+    p = ROOT.parent / "shared" / "datasets" / "fr-clinic" / "fr-clinic_robotlaser.clf.bz2"
+    if not p.exists():
+        pytest.skip(f"real-data test: {p} not found (../shared/datasets is not beside the repo)")
+    log = CarmenLog(p)
+    values = {e["value"] for e in log.facts().no_return_evidence}
+    assert {81.83, 81.91} <= values
+    cfg = RangeFilterConfig()
+    seen = 0
+    for scan in log:
+        if scan.index >= 400:
+            break
+        at_no_return = np.isclose(scan.ranges, 81.83, atol=1e-3) | np.isclose(scan.ranges, 81.91, atol=1e-3)
+        seen += int(at_no_return.sum())
+        assert not scan.valid[at_no_return].any() and scan.no_return[at_no_return].all()
+        rd = range_data(scan, cfg)
+        # hits are exactly the valid readings within the usable range
+        usable = scan.valid & (scan.ranges <= cfg.max_range)
+        assert len(rd.hits) == int(usable.sum())
+        assert (np.hypot(*(rd.hits - rd.origin).T) <= cfg.max_range + 1e-6).all()
+    assert seen > 1000  # the slice does hold both kinds
