@@ -173,12 +173,14 @@ class LocalSlam:
             hyps += [ex.predict(scan.timestamp, None), ex.last_pose]  # constant velocity, no motion
         best = None
         tried = []
+        stack = self.wide_matcher.stack_for(grid)  # built once, searched from every prediction
+        wide = self.wide_matcher
         for h in hyps:
             if any(math.hypot(h[0] - t[0], h[1] - t[1]) < grid.resolution and abs(math.remainder(h[2] - t[2], 2 * math.pi)) < 1e-3
                    for t in tried):
                 continue
             tried.append(h)
-            m = self.wide_matcher.match(grid, h, points)
+            m = wide._match(grid, h, points, 0.0, wide.linear_window, wide.angular_window, stack=stack)
             if m is not None and (best is None or m.score > best.score):
                 best = m
         if best is None:

@@ -77,14 +77,18 @@ class RealTimeCorrelativeScanMatcher:
                 return wide
         return res
 
-    def _match(self, grid, predicted, points, min_score, linear_window, angular_window):
+    def stack_for(self, grid: MatchGrid) -> PrecomputationStack:
+        """The branch-and-bound precomputation of ``grid``, to share among several searches of one scan."""
+        return PrecomputationStack(grid, self.branch_depth)
+
+    def _match(self, grid, predicted, points, min_score, linear_window, angular_window, stack=None):
         params = SearchParameters.make(linear_window, angular_window, grid.resolution, points)
         cells = grid.cells(points, predicted, params.angles)
         w = params.linear_cells
         res = grid.resolution
         n_cand = cells.shape[0] * (2 * w + 1) ** 2
         if self.branch_depth > 0:
-            stack = PrecomputationStack(grid, self.branch_depth)
+            stack = self.stack_for(grid) if stack is None else stack
             found = branch_and_bound(stack, cells, w, min_score, self.penalty, params.angles)
             if found is None:
                 return None
