@@ -157,3 +157,27 @@ def test_loop_closure_search_is_exact_at_finished_submap_borders(sim_first_finis
                 bad.append((q, min_score, why))
     assert crossed_low >= SUBMAP_QUERIES // 2
     assert not bad, f"{len(bad)} of {2 * SUBMAP_QUERIES} searches disagree, e.g. {bad[:3]}"
+
+
+def test_stack_cache_keeps_the_most_recent_and_rebuilds_identically():
+    from types import SimpleNamespace
+
+    from slam2d.backend.loop_closure import StackCache, SubmapMatcher
+    from slam2d.grid.probability_grid import ProbabilityGrid
+
+    rng = np.random.default_rng(2)
+    subs = []
+    for k in range(3):
+        g = ProbabilityGrid(0.05)
+        for _ in range(5):
+            g.insert(np.zeros(2), rng.uniform(-2, 2, (80, 2)))
+        subs.append(SimpleNamespace(index=k, grid=g, local_pose=np.zeros(3)))
+    cache = StackCache(2)
+    ms = [SubmapMatcher(s, 3, cache) for s in subs]
+    first = ms[0].stack.data.copy()
+    ms[1].stack, ms[2].stack  # evicts submap 0's stack
+    assert cache.builds == 3 and len(cache._stacks) == 2 and 0 not in cache._stacks
+    np.testing.assert_array_equal(ms[0].stack.data, first)  # rebuilt, identical
+    assert cache.builds == 4
+    ms[0].stack  # cached now
+    assert cache.builds == 4

@@ -14,11 +14,14 @@ import time
 
 import numpy as np
 
-from slam2d.backend.loop_closure import SubmapMatcher, loop_points
+from slam2d.backend.loop_closure import StackCache, SubmapMatcher, loop_points
 from slam2d.backend.pose_graph import PoseGraph
 from slam2d.geometry import between, compose, inverse
 
 log = logging.getLogger(__name__)
+
+#: precomputation stacks kept for the most recently searched finished submaps (``StackCache``)
+STACK_CACHE_SIZE = 16
 
 
 class GlobalSlam:
@@ -31,6 +34,7 @@ class GlobalSlam:
         self.lc = lc
         self.graph = PoseGraph(lc.huber_scale, lc.max_residual_translation, math.radians(lc.max_residual_rotation_deg))
         self.matchers: dict[int, SubmapMatcher] = {}
+        self.stacks = StackCache(STACK_CACHE_SIZE)
         self.submap_anchor: dict[int, int] = {}  # submap -> scan index of its first node
         self.submap_local: dict[int, np.ndarray] = {}
         self.nodes: dict[int, dict] = {}  # scan index -> {local, time, stamp, points}
@@ -81,7 +85,7 @@ class GlobalSlam:
     def add_finished_submap(self, submap):
         if not self.lc.enabled:
             return
-        self.matchers[submap.index] = SubmapMatcher(submap, self.lc.branch_depth)
+        self.matchers[submap.index] = SubmapMatcher(submap, self.lc.branch_depth, self.stacks)
         # earlier nodes near the new submap (sampled), excluding those inside it
         inside = set(submap.node_indices)
         first = min(inside, default=0)

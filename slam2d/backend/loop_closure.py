@@ -12,6 +12,7 @@ from __future__ import annotations
 
 
 import time
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,23 +31,59 @@ class LoopMatch:
     seconds: float
 
 
+class StackCache:
+    """The precomputation stacks of the most recently searched finished submaps.
+
+    A stack costs several bytes per cell and is needed only while nodes are matched against
+    its submap, which happens in bursts (when the robot is back in that area). Keeping the
+    ``size`` most recently used ones bounds memory by the area being revisited, not by the
+    whole map; an evicted stack is rebuilt, identically, from the submap's uint8 grid.
+    """
+
+    def __init__(self, size: int):
+        self.size = size
+        self._stacks: OrderedDict[int, PrecomputationStack] = OrderedDict()
+        self.builds = 0
+
+    def get(self, matcher: "SubmapMatcher") -> PrecomputationStack:
+        key = matcher.submap.index
+        st = self._stacks.get(key)
+        if st is not None:
+            self._stacks.move_to_end(key)
+            return st
+        st = PrecomputationStack(matcher.grid, matcher.depth)
+        self.builds += 1
+        self._stacks[key] = st
+        while len(self._stacks) > self.size:
+            self._stacks.popitem(last=False)
+        return st
+
+    @property
+    def nbytes(self) -> int:
+        return sum(st.nbytes for st in self._stacks.values())
+
+
 class SubmapMatcher:
     """Branch-and-bound matcher for one finished submap."""
 
-    def __init__(self, submap, depth: int):
+    def __init__(self, submap, depth: int, cache: StackCache | None = None):
         g = submap.grid
         self.submap = submap
+        self.depth = depth
         q = np.clip(np.round(g.prob * 255.0), 0, 255).astype(np.uint8)
-        self.stack = PrecomputationStack(MatchGrid(q, g.origin, g.resolution, float(round(g.unknown_probability * 255))),
-                                         depth)
-        self.grid = self.stack.grid  # reads the stack's level 0: no second copy of the values
+        self.grid = MatchGrid(q, g.origin, g.resolution, float(round(g.unknown_probability * 255)))
+        self.cache = StackCache(1) if cache is None else cache
         self.prob = MatchGrid(g.prob, g.origin, g.resolution, g.unknown_probability)
         known = np.argwhere(g.known > 0)
         self.center_local = (g.origin + (known.mean(axis=0)[::-1] + 0.5) * g.resolution) if len(known) else g.origin
 
     @property
+    def stack(self) -> PrecomputationStack:
+        return self.cache.get(self)
+
+    @property
     def nbytes(self) -> int:
-        return self.stack.nbytes
+        return self.grid.values.nbytes + self.prob.values.nbytes
 
     def match(self, points, initial, linear_window, angular_window, min_score, refine_weights) -> LoopMatch | None:
         t0 = time.perf_counter()
