@@ -150,3 +150,16 @@ def test_final_refinement_pulls_perturbed_scans_onto_the_map():
     np.testing.assert_allclose(out[-1], noisy[-1], atol=1e-12)
     exact = refine_trajectory(grid, truths, points, 1.0, 3.0)
     assert np.hypot(*(exact - truths)[:, :2].T).max() < 0.02
+
+
+def test_nodes_are_sampled_per_count_or_per_distance():
+    """Dense (nodes 1 cm apart): every 5th node; sparse (1 m apart): every node, as densely per metre."""
+    from slam2d.backend.global_slam import GlobalSlam
+    from slam2d.config import config_from_dict
+
+    cfg = config_from_dict({"loop_closure": {"sample_every_n_nodes": 5}, "motion_filter": {"max_distance": 0.2}})
+    dense, sparse = GlobalSlam(cfg), GlobalSlam(cfg)
+    picked_dense = [j for j in range(20) if dense._sample(j, np.array([0.01 * j, 0.0, 0.0]))]
+    picked_sparse = [j for j in range(20) if sparse._sample(j, np.array([1.0 * j, 0.0, 0.0]))]
+    assert picked_dense == [4, 9, 14, 19]
+    assert picked_sparse == list(range(1, 20))

@@ -35,6 +35,9 @@ class GlobalSlam:
         self.graph = PoseGraph(lc.huber_scale, lc.max_residual_translation, math.radians(lc.max_residual_rotation_deg))
         self.matchers: dict[int, SubmapMatcher] = {}
         self.stacks = StackCache(STACK_CACHE_SIZE)
+        self.sampled: list[int] = []  # nodes matched against finished submaps (and new submaps against them)
+        self.sample_distance = cfg.motion_filter.max_distance
+        self._last_pose, self._since_sample, self._travel = None, 0, 0.0
         self.submap_anchor: dict[int, int] = {}  # submap -> scan index of its first node
         self.submap_local: dict[int, np.ndarray] = {}
         self.nodes: dict[int, dict] = {}  # scan index -> {local, time, stamp, points}
@@ -73,7 +76,7 @@ class GlobalSlam:
                 self.submap_anchor[k] = j
             if self.submap_anchor[k] != j:
                 self.graph.add_intra(self.submap_anchor[k], j, between(self.submap_local[k], local_pose), cov)
-        if self.lc.enabled and len(self.node_order) % self.lc.sample_every_n_nodes == 0:
+        if self.lc.enabled and self._sample(j, local_pose):
             self._search_node(j)
         self.since_optimize += 1
         if self.since_optimize >= self.lc.optimize_every_n_nodes:
@@ -81,6 +84,21 @@ class GlobalSlam:
                 self.optimize()
             else:  # nothing new but local chains: the solution would only follow them
                 self.since_optimize = 0
+
+    def _sample(self, j, local_pose) -> bool:
+        """Every ``sample_every_n_nodes``-th node, or sooner once the robot travelled as far as that many
+        nodes span at the motion filter's distance: a sparse log (scans a metre apart) is then
+        sampled as densely per metre as a dense one."""
+        if self._last_pose is not None:
+            self._travel += float(np.hypot(*(np.asarray(local_pose[:2]) - self._last_pose[:2])))
+        self._last_pose = np.asarray(local_pose, float)
+        self._since_sample += 1
+        n = self.lc.sample_every_n_nodes
+        if self._since_sample >= n or self._travel >= n * self.sample_distance:
+            self._since_sample, self._travel = 0, 0.0
+            self.sampled.append(j)
+            return True
+        return False
 
     def add_finished_submap(self, submap):
         if not self.lc.enabled:
@@ -91,7 +109,7 @@ class GlobalSlam:
         first = min(inside, default=0)
         center = compose(self.global_submap(submap.index), between(submap.local_pose, np.r_[self.matchers[submap.index].center_local, 0.0]))
         cands = []
-        for j in self.node_order[:: self.lc.sample_every_n_nodes]:
+        for j in self.sampled:
             if j in inside or j >= first:
                 continue
             d = np.hypot(*(self.global_node(j)[:2] - center[:2]))
