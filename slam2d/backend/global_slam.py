@@ -142,8 +142,12 @@ class GlobalSlam:
         dt = time.perf_counter() - t0
         self.search_seconds += dt
         self.searches += 1
-        rec = {"submap": int(k), "from_scan": int(self.submap_anchor[k]), "to_scan": int(j),
-               "from_stamp": self.nodes[self.submap_anchor[k]]["stamp"], "to_stamp": node["stamp"],
+        # The constraint ties the node to the submap's node nearest to the match (its grid frame is
+        # the local frame, so that node's local pose is its pose in the grid): the content it
+        # matched was inserted there, whereas the anchor can be a whole submap of drift away.
+        frm = self._nearest_submap_node(k, None if res is None else res.pose)
+        rec = {"submap": int(k), "from_scan": int(frm), "to_scan": int(j),
+               "from_stamp": self.nodes[frm]["stamp"], "to_stamp": node["stamp"],
                "search_ms": round(dt * 1e3, 3)}
         if res is None:
             rec.update({"relative_pose": None, "score": None, "accepted": False, "reason": f"no match above {lc.min_score}",
@@ -151,13 +155,14 @@ class GlobalSlam:
         else:
             cov = node_frame_covariance(_floored(res.covariance, lc.loop_sigma_translation,
                                                  math.radians(lc.loop_sigma_rotation_deg)), res.pose[2])
-            rec.update({"relative_pose": [float(v) for v in res.relative], "score": round(res.score, 4),
+            relative = between(self.nodes[frm]["local"], res.pose)
+            rec.update({"relative_pose": [float(v) for v in relative], "score": round(res.score, 4),
                         "rescore": round(res.rescore, 4), "margin": round(res.margin, 4),
                         "sigma": [round(float(v), 5) for v in np.sqrt(np.diag(cov))],
                         "accepted": res.reason is None, "reason": res.reason or "accepted",
                         "in_final_graph": res.reason is None})
             if res.reason is None:
-                self.graph.add_loop(self.submap_anchor[k], j, res.relative, cov, rec)
+                self.graph.add_loop(frm, j, relative, cov, rec)
         self.records.append(rec)
         self.observer.on_loop_candidate(rec)
 
@@ -179,6 +184,14 @@ class GlobalSlam:
         self.observer.on_optimized(self)
         if dropped:
             log.info("dropped %d loop constraints with large residuals", len(dropped))
+
+    def _nearest_submap_node(self, k, pose) -> int:
+        """The node of submap ``k`` whose local pose lies nearest to ``pose`` (grid frame); the anchor without one."""
+        ids = [i for i in self.matchers[k].submap.node_indices if i in self.nodes]
+        if pose is None or not ids:
+            return self.submap_anchor[k]
+        d = [np.hypot(*(self.nodes[i]["local"][:2] - pose[:2])) for i in ids]
+        return int(ids[int(np.argmin(d))])
 
     def _check_consistency(self):
         """Remove loops that contradict other loops through the local chain (``consistency.py``)."""
