@@ -10,7 +10,8 @@ below ``tol_t + drift_t · chain`` metres and ``tol_r + drift_r · chain`` radia
 independent of the pose-graph solution: it uses only local SLAM poses and the loops themselves.
 
 Loops are then removed greedily, most contradicted first, while some loop is contradicted by
-more tested partners than support it; with ``min_support`` > 0, a loop that has fewer consistent
+more tested partners than support it, and by at least two (one contradiction between two loops
+cannot say which of them is false: that is left to the residual check); with ``min_support`` > 0, a loop that has fewer consistent
 partners than that is removed too (a single loop that nothing confirms).
 """
 from __future__ import annotations
@@ -64,7 +65,7 @@ def inconsistent(m: np.ndarray, scores: np.ndarray, min_support: int = 0) -> lis
         sub = m * alive[None, :]
         pos = (sub == 1).sum(axis=1)
         neg = (sub == -1).sum(axis=1)
-        excess = np.where(alive, neg - pos, -10 ** 9)
+        excess = np.where(alive & (neg >= 2), neg - pos, -10 ** 9)
         if len(excess) == 0:
             break
         worst = int(np.lexsort((scores, -excess))[0])  # most contradicted, then the lowest score
