@@ -112,6 +112,7 @@ class LoopClosureConfig(_Section):
     consistency_min_support: int = Field(0, ge=0, description="A loop needs at least this many consistent partner loops to stay (0: an unconfirmed loop is left to the residual check).")
     min_local_sigma_translation: float = Field(0.01, gt=0.0, description="Floor on the translation sigma of node-in-submap constraints from the local matcher's covariance [m].")
     min_local_sigma_rotation_deg: float = Field(0.1, gt=0.0, description="Floor on their rotation sigma [deg].")
+    gnc_final: bool = Field(True, description="Before the final optimization, remove loops that graduated non-convexity (gtsam GncLMOptimizer, every local constraint a known inlier) weighs as outliers.")
     huber_scale: float = Field(5.0, gt=0.0, description="Huber threshold (in standard deviations) of the robust loop-constraint noise.")
     max_residual_translation: float = Field(0.2, gt=0.0, description="A loop constraint whose residual after optimization exceeds this [m] is removed.")
     max_residual_rotation_deg: float = Field(1.0, gt=0.0, description="... or this [deg].")

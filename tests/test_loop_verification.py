@@ -110,3 +110,29 @@ def test_consistency_check_rejects_an_injected_false_loop_on_the_simulator():
     final = [r for r in gs.records if r.get("in_final_graph")]
     assert len(final) >= 20
     assert all(agrees(gt, r, 0.3, 2.0) for r in final)
+
+
+def test_gnc_prune_removes_a_false_loop_and_keeps_the_true_one():
+    """GNC judges loops against the local chain's covariances: with honest ones (the drift fits them)
+    it keeps the true loop; with overconfident ones it drops the true loop too (seen while writing this)."""
+    from slam2d.backend.pose_graph import PoseGraph
+
+    side, per = 10.0, 10
+    gt = np.array([(x0 + math.cos(s * math.pi / 2) * side * i / per, y0 + math.sin(s * math.pi / 2) * side * i / per,
+                    s * math.pi / 2) for s, (x0, y0) in enumerate([(0, 0), (side, 0), (side, side), (0, side)])
+                   for i in range(per)])
+    g = PoseGraph()
+    rng = np.random.default_rng(1)
+    est = [gt[0]]
+    for k in range(1, len(gt)):
+        est.append(compose(est[-1], between(gt[k - 1], gt[k]) + [0.0, 0.0, 0.005] + rng.normal(0, 0.003, 3)))
+    for k, p in enumerate(est):
+        g.add_node(k, p)
+        if k:
+            g.add_intra(k - 1, k, between(est[k - 1], est[k]), np.diag([1e-4, 1e-4, 1e-4]))  # honest: the drift fits it
+    true, false = {"accepted": True, "in_final_graph": True}, {"accepted": True, "in_final_graph": True}
+    g.add_loop(0, len(gt) - 1, between(gt[0], gt[-1]), [0.02, 0.02, 0.005], true)
+    g.add_loop(5, 25, np.array([3.0, -2.0, 1.0]), [0.02, 0.02, 0.005], false)
+    out = g.gnc_prune()
+    assert [f.record for f in out] == [false] and false["reason"] == "GNC outlier"
+    assert true["in_final_graph"] and len(g.loops) == 1

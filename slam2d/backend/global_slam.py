@@ -49,6 +49,7 @@ class GlobalSlam:
         self.optimizations = 0
         self.loops_at_last_optimize = 0
         self.consistency_removed = 0
+        self.gnc_removed = 0
         rt = cfg.real_time_matcher
         self.unmatched_cov = unmatched_covariance(rt.linear_search_window, math.radians(rt.angular_search_window_deg))
 
@@ -221,6 +222,10 @@ class GlobalSlam:
         return out
 
     def finish(self) -> dict[int, np.ndarray]:
+        if self.lc.gnc_final and self.graph.loops:
+            t0 = time.perf_counter()
+            self.gnc_removed = len(self.graph.gnc_prune())
+            self.optimize_seconds += time.perf_counter() - t0
         self.optimize()
         return {j: self.graph.node_pose(j) for j in self.node_order}
 
@@ -231,7 +236,9 @@ class GlobalSlam:
         return {"loop_closure": {
             "candidates_searched": self.searches, "accepted": acc, "rejected_score": self.searches - found,
             "rejected_verification": found - acc, "removed_inconsistent": self.consistency_removed,
-            "removed_after_optimization": len(self.graph.removed) - self.consistency_removed, "in_final_graph": final,
+            "removed_gnc": self.gnc_removed,
+            "removed_after_optimization": len(self.graph.removed) - self.consistency_removed - self.gnc_removed,
+            "in_final_graph": final,
             "search_total_s": round(self.search_seconds, 3),
             "search_mean_ms": round(1e3 * self.search_seconds / self.searches, 3) if self.searches else None,
             "optimizations": self.optimizations, "optimize_total_s": round(self.optimize_seconds, 3),

@@ -38,6 +38,7 @@ class LoopFactor:
     node: int
     relative: np.ndarray
     record: dict        # the constraints.jsonl record, updated with the outcome
+    base: object = None  # its Gaussian noise model (before the robust wrapper)
 
 
 class PoseGraph:
@@ -85,7 +86,7 @@ class PoseGraph:
         base = gtsam.noiseModel.Diagonal.Sigmas(c) if c.ndim == 1 else gtsam.noiseModel.Gaussian.Covariance(c)
         noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(self.huber_scale), base)
         self.graph.add(gtsam.BetweenFactorPose2(_key("n", anchor), _key("n", j), _pose(relative), noise))
-        f = LoopFactor(self.graph.size() - 1, anchor, j, np.asarray(relative, dtype=float), record)
+        f = LoopFactor(self.graph.size() - 1, anchor, j, np.asarray(relative, dtype=float), record, base)
         self.loops.append(f)
         return f
 
@@ -110,6 +111,35 @@ class PoseGraph:
         self.values = opt.optimize()
         self.iterations += opt.iterations()
         self.last_error = (before, self.graph.error(self.values))
+
+    def gnc_prune(self) -> list[LoopFactor]:
+        """Graduated non-convexity (Yang et al. 2020; ``gtsam.GncLMOptimizer``, truncated least squares)
+        over the loops as plain Gaussians, every other factor a known inlier; loops it weighs below
+        0.5 are removed. Returns them."""
+        g = gtsam.NonlinearFactorGraph()
+        by_index = {f.index: f for f in self.loops}
+        inliers, slots = [], {}
+        for i in range(self.graph.size()):
+            if not self.graph.exists(i):
+                continue
+            f = by_index.get(i)
+            if f is None:
+                inliers.append(g.size())
+                g.add(self.graph.at(i))
+            else:
+                slots[g.size()] = f
+                g.add(gtsam.BetweenFactorPose2(_key("n", f.anchor), _key("n", f.node), _pose(f.relative), f.base))
+        if not slots:
+            return []
+        params = gtsam.GncLMParams()
+        params.setKnownInliers(inliers)
+        opt = gtsam.GncLMOptimizer(g, self.values, params)
+        opt.optimize()
+        w = opt.getWeights()
+        out = [f for k, f in slots.items() if w[k] < 0.5]
+        for f in out:
+            self.remove_loop(f, "GNC outlier")
+        return out
 
     def optimize(self, max_rounds: int = 20) -> list[LoopFactor]:
         """Solve; then repeatedly drop the worst loop constraints whose residual stays large and
