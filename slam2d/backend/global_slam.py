@@ -2,9 +2,12 @@
 
 Every node (an inserted scan) enters the pose graph tied to the submaps it was inserted
 into; sampled nodes are matched against nearby finished submaps (branch-and-bound), and
-each newly finished submap against earlier nearby nodes; accepted matches become
-loop-closure constraints. The graph is optimized every ``optimize_every_n_nodes`` nodes and
-once at the end; submaps and nodes then move to their global poses.
+each newly finished submap against earlier nearby nodes; matches that pass verification
+(re-score, margin, ``loop_closure.py``) become loop-closure constraints with their own
+covariance. Before each optimization, loops that contradict other loops through the local
+chain are removed (``consistency.py``); after it, loops with large residuals. The graph is
+optimized every ``optimize_every_n_nodes`` nodes and once at the end; submaps and nodes then
+move to their global poses. Every rejection's reason is kept in its constraints.jsonl record.
 """
 from __future__ import annotations
 
@@ -14,9 +17,11 @@ import time
 
 import numpy as np
 
+from slam2d.backend.consistency import ConsistencyParams, inconsistent, pair_matrix
 from slam2d.backend.loop_closure import StackCache, SubmapMatcher, loop_points
 from slam2d.backend.pose_graph import PoseGraph
 from slam2d.geometry import between, compose, inverse
+from slam2d.matching.real_time import unmatched_covariance
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +55,10 @@ class GlobalSlam:
         self.optimize_seconds = 0.0
         self.optimizations = 0
         self.loops_at_last_optimize = 0
+        self.consistency_removed = 0
+        self.gnc_removed = 0
+        rt = cfg.real_time_matcher
+        self.unmatched_cov = unmatched_covariance(rt.linear_search_window, math.radians(rt.angular_search_window_deg))
 
     # ---- estimates
     def global_node(self, j) -> np.ndarray:
@@ -64,12 +73,20 @@ class GlobalSlam:
     # ---- input from local SLAM
     def add_node(self, scan, local_pose, hits, covariance, inserted_into):
         j = scan.index
-        self.nodes[j] = {"local": np.asarray(local_pose, float), "time": scan.timestamp,
+        local_pose = np.asarray(local_pose, float)
+        prev = self.nodes[self.node_order[-1]] if self.node_order else None
+        path = 0.0 if prev is None else prev["path"] + float(np.hypot(*(local_pose[:2] - prev["local"][:2])))
+        self.nodes[j] = {"local": local_pose, "time": scan.timestamp, "path": path,
                          "stamp": scan.timestamp_text or f"{scan.timestamp:.9f}",
                          "points": loop_points(hits, self.lc.voxel_filter_size)}
         self.node_order.append(j)
         self.graph.add_node(j, compose(self.correction, local_pose))
-        cov = _floored(covariance, self.lc.min_local_sigma_translation, math.radians(self.lc.min_local_sigma_rotation_deg))
+        if covariance is None:  # never matched: pure prediction, trusted least
+            covariance = self.unmatched_cov
+        # the matcher's covariance is along the local map's x/y axes; the between-factor's noise
+        # is in the node's own frame (gtsam: error = Logmap(measured⁻¹ · anchor⁻¹ · node))
+        cov = node_frame_covariance(_floored(covariance, self.lc.min_local_sigma_translation,
+                                             math.radians(self.lc.min_local_sigma_rotation_deg)), local_pose[2])
         for k, sub_local in inserted_into:
             if k not in self.submap_local:
                 self.submap_local[k] = np.asarray(sub_local, float)
@@ -142,20 +159,33 @@ class GlobalSlam:
         lc = self.lc
         t0 = time.perf_counter()
         res = m.match(node["points"], initial, lc.linear_search_window, math.radians(lc.angular_search_window_deg),
-                      lc.min_score, (lc.refine_occupied_weight, lc.refine_translation_weight, lc.refine_rotation_weight, 20))
+                      lc.min_score, (lc.refine_occupied_weight, lc.refine_translation_weight, lc.refine_rotation_weight, 20),
+                      lc.min_margin, (lc.margin_window, math.radians(lc.margin_window_deg)),
+                      (lc.margin_exclusion, math.radians(lc.margin_exclusion_deg)))
         dt = time.perf_counter() - t0
         self.search_seconds += dt
         self.searches += 1
-        rec = {"submap": int(k), "from_scan": int(self.submap_anchor[k]), "to_scan": int(j),
-               "from_stamp": self.nodes[self.submap_anchor[k]]["stamp"], "to_stamp": node["stamp"],
+        # The constraint ties the node to the submap's node nearest to the match (its grid frame is
+        # the local frame, so that node's local pose is its pose in the grid): the content it
+        # matched was inserted there, whereas the anchor can be a whole submap of drift away.
+        frm = self._nearest_submap_node(k, None if res is None else res.pose)
+        rec = {"submap": int(k), "from_scan": int(frm), "to_scan": int(j),
+               "from_stamp": self.nodes[frm]["stamp"], "to_stamp": node["stamp"],
                "search_ms": round(dt * 1e3, 3)}
         if res is None:
-            rec.update({"relative_pose": None, "score": None, "accepted": False, "reason": f"no match above {lc.min_score}"})
+            rec.update({"relative_pose": None, "score": None, "accepted": False, "reason": f"no match above {lc.min_score}",
+                        "in_final_graph": False})
         else:
-            rec.update({"relative_pose": [float(v) for v in res.relative], "score": round(res.score, 4), "accepted": True,
-                        "reason": "accepted", "in_final_graph": True})
-            sig = [lc.loop_sigma_translation, lc.loop_sigma_translation, math.radians(lc.loop_sigma_rotation_deg)]
-            self.graph.add_loop(self.submap_anchor[k], j, res.relative, sig, rec)
+            cov = node_frame_covariance(_floored(res.covariance, lc.loop_sigma_translation,
+                                                 math.radians(lc.loop_sigma_rotation_deg)), res.pose[2])
+            relative = between(self.nodes[frm]["local"], res.pose)
+            rec.update({"relative_pose": [float(v) for v in relative], "score": round(res.score, 4),
+                        "rescore": round(res.rescore, 4), "margin": round(res.margin, 4),
+                        "sigma": [round(float(v), 5) for v in np.sqrt(np.diag(cov))],
+                        "accepted": res.reason is None, "reason": res.reason or "accepted",
+                        "in_final_graph": res.reason is None})
+            if res.reason is None:
+                self.graph.add_loop(frm, j, relative, cov, rec)
         self.records.append(rec)
         self.observer.on_loop_candidate(rec)
 
@@ -164,6 +194,8 @@ class GlobalSlam:
         if not self.node_order:
             return
         t0 = time.perf_counter()
+        if self.lc.consistency_check:
+            self._check_consistency()
         dropped = self.graph.optimize()
         self.optimize_seconds += time.perf_counter() - t0
         self.optimizations += 1
@@ -176,6 +208,33 @@ class GlobalSlam:
         if dropped:
             log.info("dropped %d loop constraints with large residuals", len(dropped))
 
+    def _nearest_submap_node(self, k, pose) -> int:
+        """The node of submap ``k`` whose local pose lies nearest to ``pose`` (grid frame); the anchor without one."""
+        ids = [i for i in self.matchers[k].submap.node_indices if i in self.nodes]
+        if pose is None or not ids:
+            return self.submap_anchor[k]
+        d = [np.hypot(*(self.nodes[i]["local"][:2] - pose[:2])) for i in ids]
+        return int(ids[int(np.argmin(d))])
+
+    def _check_consistency(self):
+        """Remove loops that contradict other loops through the local chain (``consistency.py``)."""
+        loops = list(self.graph.loops)
+        if len(loops) < 2 and self.lc.consistency_min_support == 0:
+            return
+        lc = self.lc
+        p = ConsistencyParams(lc.consistency_max_chain, lc.consistency_translation, lc.consistency_drift,
+                              math.radians(lc.consistency_rotation_deg), math.radians(lc.consistency_drift_deg),
+                              lc.consistency_min_support)
+        rel = np.array([f.relative for f in loops]).reshape(-1, 3)
+        la = np.array([self.nodes[f.anchor]["local"] for f in loops]).reshape(-1, 3)
+        lj = np.array([self.nodes[f.node]["local"] for f in loops]).reshape(-1, 3)
+        pa = np.array([self.nodes[f.anchor]["path"] for f in loops])
+        pj = np.array([self.nodes[f.node]["path"] for f in loops])
+        scores = np.array([f.record.get("score") or 0.0 for f in loops])
+        for i, reason in inconsistent(pair_matrix(rel, la, lj, pa, pj, p), scores, p.min_support):
+            self.graph.remove_loop(loops[i], reason)
+            self.consistency_removed += 1
+
     def submap_transforms(self) -> dict[int, np.ndarray]:
         """global ← local transform of every finished submap's grid (from its first node)."""
         out = {}
@@ -185,20 +244,40 @@ class GlobalSlam:
         return out
 
     def finish(self) -> dict[int, np.ndarray]:
+        if self.lc.gnc_final and self.graph.loops:
+            t0 = time.perf_counter()
+            self.gnc_removed = len(self.graph.gnc_prune())
+            self.optimize_seconds += time.perf_counter() - t0
         self.optimize()
         return {j: self.graph.node_pose(j) for j in self.node_order}
 
     def summary(self) -> dict:
         acc = sum(1 for r in self.records if r["accepted"])
         final = sum(1 for r in self.records if r.get("in_final_graph"))
+        found = sum(1 for r in self.records if r["relative_pose"] is not None)
         return {"loop_closure": {
-            "candidates_searched": self.searches, "accepted": acc, "rejected_score": self.searches - acc,
-            "removed_after_optimization": len(self.graph.removed), "in_final_graph": final,
+            "candidates_searched": self.searches, "accepted": acc, "rejected_score": self.searches - found,
+            "rejected_verification": found - acc, "removed_inconsistent": self.consistency_removed,
+            "removed_gnc": self.gnc_removed,
+            "removed_after_optimization": len(self.graph.removed) - self.consistency_removed - self.gnc_removed,
+            "in_final_graph": final,
             "search_total_s": round(self.search_seconds, 3),
             "search_mean_ms": round(1e3 * self.search_seconds / self.searches, 3) if self.searches else None,
             "optimizations": self.optimizations, "optimize_total_s": round(self.optimize_seconds, 3),
             "final_error": self.graph.last_error[1], "submaps": len(self.submap_local), "nodes": len(self.node_order),
         }}
+
+
+def node_frame_covariance(cov, theta) -> np.ndarray:
+    """A covariance of (x, y, θ) along the map's axes, expressed in the frame of a pose with heading
+    ``theta`` in that map: J Σ Jᵀ with J = diag(R(θ)ᵀ, 1). A BetweenFactorPose2's error lives in the
+    tangent space at the measured relative pose, i.e. its translation is along the node's own axes;
+    the rotation is the node's heading in the map frame the covariance was computed in (the anchor's
+    heading plus the relative heading), not the relative heading alone."""
+    c, s = math.cos(theta), math.sin(theta)
+    j = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    out = j @ np.asarray(cov, dtype=float) @ j.T
+    return 0.5 * (out + out.T)
 
 
 def _floored(cov, sigma_t, sigma_r) -> np.ndarray:

@@ -1,7 +1,18 @@
 """Loop-closure constraints (Hess et al. 2016, Sec. V): a node's scan is matched against a finished
 submap by branch-and-bound correlative search over precomputed max-pooled grids, scored as
 the mean probability under the scan's points; matches above ``min_score`` are refined below
-cell size and become constraints.
+cell size and then verified before they become constraints:
+
+- re-score: the mean probability at the refined pose (the float grid, nearest cell) must
+  still reach ``min_score`` (the lattice score alone can be a lucky cell);
+- ambiguity: an exhaustive search on the lattice around the refined pose (``margin_window``)
+  finds the best *separated* local maximum (outside ``margin_exclusion`` of the peak); the
+  peak must beat it by ``min_margin`` (a corridor's slide, repeated doors). Chosen over a
+  second branch-and-bound run with the peak excluded because the B&B kernel has no exclusion
+  and a small exhaustive window costs a few ms, only for matches that passed the score;
+- information: Olson's covariance of that window's score distribution (unpenalized; covered
+  by the curvature at the peak, flat directions get the whole window), in the submap grid
+  frame — the caller floors it and turns it into the node's frame.
 
 Precomputation grids are built once per finished submap and kept as uint8 (probability ×
 255), which bounds their memory (level d is padded by 2^d − 1 cells on the low side so that
@@ -18,8 +29,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from slam2d.geometry import between
+from slam2d.matching.real_time import _covariance, unmatched_covariance
 from slam2d.matching.refine import refine
-from slam2d.matching.search import MatchGrid, PrecomputationStack, SearchParameters, branch_and_bound
+from slam2d.matching.search import MatchGrid, PrecomputationStack, SearchParameters, branch_and_bound, exhaustive
 from slam2d.range_data import voxel_filter
 
 
@@ -27,8 +39,12 @@ from slam2d.range_data import voxel_filter
 class LoopMatch:
     pose: np.ndarray      # refined pose of the node in the submap's grid frame
     relative: np.ndarray  # submap_pose⁻¹ ∘ node pose
-    score: float
+    score: float          # branch-and-bound lattice score
     seconds: float
+    rescore: float = float("nan")       # mean probability at the refined pose
+    margin: float = float("nan")        # peak minus the best separated local maximum nearby
+    covariance: np.ndarray | None = None  # (x, y, θ) in the submap grid's axes
+    reason: str | None = None           # why verification rejected it (None: accepted)
 
 
 class StackCache:
@@ -85,7 +101,10 @@ class SubmapMatcher:
     def nbytes(self) -> int:
         return self.grid.values.nbytes + self.prob.values.nbytes
 
-    def match(self, points, initial, linear_window, angular_window, min_score, refine_weights) -> LoopMatch | None:
+    def match(self, points, initial, linear_window, angular_window, min_score, refine_weights,
+              min_margin=0.0, margin_window=(0.6, 0.035), margin_exclusion=(0.2, 0.0175)) -> LoopMatch | None:
+        """None when branch-and-bound finds nothing above ``min_score``; else the refined match,
+        with ``reason`` set when verification rejects it."""
         t0 = time.perf_counter()
         params = SearchParameters.make(linear_window, angular_window, self.grid.resolution, points)
         cells = self.grid.cells(points, initial, params.angles)
@@ -96,11 +115,46 @@ class SubmapMatcher:
         res = self.grid.resolution
         pose = np.array([initial[0] + dx * res, initial[1] + dy * res, initial[2] + params.angles[a]])
         pose, _ = refine(self.prob, pose, points, *refine_weights)
-        return LoopMatch(pose, between(self.submap.local_pose, pose), score / 255.0, time.perf_counter() - t0)
+        out = LoopMatch(pose, between(self.submap.local_pose, pose), score / 255.0, 0.0)
+        self.verify(out, points, min_score, min_margin, margin_window, margin_exclusion, params.angular_step)
+        out.seconds = time.perf_counter() - t0
+        return out
+
+    def verify(self, m: LoopMatch, points, min_score, min_margin, window, exclusion, step) -> LoopMatch:
+        """Fill rescore, margin and covariance from an exhaustive window around the refined pose."""
+        res = self.grid.resolution
+        n_ang = max(2, int(np.ceil(window[1] / step)))
+        w = max(2, int(np.ceil(window[0] / res)))
+        angles = step * np.arange(-n_ang, n_ang + 1, dtype=np.float64)
+        cells = self.prob.cells(points, m.pose, angles)
+        scores = exhaustive(self.prob, cells, w)
+        m.rescore = float(scores[n_ang, w, w])
+        m.margin = separated_margin(scores, int(np.ceil(exclusion[0] / res)), int(np.ceil(exclusion[1] / step)))
+        params = SearchParameters(angles, w, step, res)
+        m.covariance = _covariance(scores, params, len(points), unmatched_covariance(window[0], window[1]))
+        if m.rescore < min_score:
+            m.reason = f"refined pose scores {m.rescore:.3f} < {min_score}"
+        elif m.margin < min_margin:
+            m.reason = f"ambiguous: margin {m.margin:.3f} < {min_margin} to a separated peak"
+        return m
+
+
+def separated_margin(scores: np.ndarray, lin: int, ang: int) -> float:
+    """Best score minus the best local maximum (3 × 3 × 3) farther than ``lin`` cells or ``ang``
+    angular steps from the best; the best score itself when there is none."""
+    from scipy.ndimage import maximum_filter
+
+    a, iy, ix = np.unravel_index(int(np.argmax(scores)), scores.shape)
+    best = float(scores[a, iy, ix])
+    peaks = (scores >= maximum_filter(scores, size=3, mode="nearest")) & (scores > 0)
+    peaks[max(a - ang, 0):a + ang + 1, max(iy - lin, 0):iy + lin + 1, max(ix - lin, 0):ix + lin + 1] = False
+    if not peaks.any():
+        return best
+    return best - float(scores[peaks].max())
 
 
 def loop_points(hits: np.ndarray, voxel: float) -> np.ndarray:
     return voxel_filter(np.asarray(hits, dtype=float), voxel)
 
 
-__all__ = ["SubmapMatcher", "LoopMatch", "loop_points"]
+__all__ = ["SubmapMatcher", "LoopMatch", "loop_points", "separated_margin"]

@@ -4,9 +4,11 @@ Variables are node poses in the map frame; a submap's pose is the pose of its fi
 (the node whose local pose started it), so a submap needs no variable of its own. Factors:
 a prior on the first node; node-in-submap constraints from local SLAM between a submap's
 first node and each node inserted into it (their noise from the real-time matcher's
-covariance); loop-closure constraints under a Huber robust noise model. ``optimize`` runs batch Levenberg-Marquardt from the current estimate; loop
-constraints whose residual stays large afterwards are removed and the graph solved
-again. This is the only module that imports gtsam.
+covariance, in the node's frame); loop-closure constraints with their own covariance from the match,
+under a Huber robust noise model. ``optimize`` runs batch Levenberg-Marquardt from the current
+estimate; loop constraints whose residual stays large afterwards are removed and the graph
+solved again (a second judge: the first is ``consistency``, which does not use the solution).
+This is the only module that imports gtsam.
 """
 from __future__ import annotations
 
@@ -36,6 +38,7 @@ class LoopFactor:
     node: int
     relative: np.ndarray
     record: dict        # the constraints.jsonl record, updated with the outcome
+    base: object = None  # its Gaussian noise model (before the robust wrapper)
 
 
 class PoseGraph:
@@ -77,13 +80,22 @@ class PoseGraph:
         noise = gtsam.noiseModel.Gaussian.Covariance(np.asarray(covariance, dtype=float))
         self.graph.add(gtsam.BetweenFactorPose2(_key("n", anchor), _key("n", j), _pose(relative), noise))
 
-    def add_loop(self, anchor: int, j: int, relative, sigmas, record: dict) -> LoopFactor:
-        base = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sigmas, dtype=float))
+    def add_loop(self, anchor: int, j: int, relative, covariance, record: dict) -> LoopFactor:
+        """``covariance``: 3×3 in the node's frame, or 3 sigmas."""
+        c = np.asarray(covariance, dtype=float)
+        base = gtsam.noiseModel.Diagonal.Sigmas(c) if c.ndim == 1 else gtsam.noiseModel.Gaussian.Covariance(c)
         noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(self.huber_scale), base)
         self.graph.add(gtsam.BetweenFactorPose2(_key("n", anchor), _key("n", j), _pose(relative), noise))
-        f = LoopFactor(self.graph.size() - 1, anchor, j, np.asarray(relative, dtype=float), record)
+        f = LoopFactor(self.graph.size() - 1, anchor, j, np.asarray(relative, dtype=float), record, base)
         self.loops.append(f)
         return f
+
+    def remove_loop(self, f: LoopFactor, reason: str):
+        self.graph.remove(f.index)
+        self.loops.remove(f)
+        f.record["in_final_graph"] = False
+        f.record["reason"] = reason
+        self.removed.append(f)
 
     def residual(self, f: LoopFactor) -> np.ndarray:
         a = self.values.atPose2(_key("n", f.anchor))
@@ -99,6 +111,35 @@ class PoseGraph:
         self.values = opt.optimize()
         self.iterations += opt.iterations()
         self.last_error = (before, self.graph.error(self.values))
+
+    def gnc_prune(self) -> list[LoopFactor]:
+        """Graduated non-convexity (Yang et al. 2020; ``gtsam.GncLMOptimizer``, truncated least squares)
+        over the loops as plain Gaussians, every other factor a known inlier; loops it weighs below
+        0.5 are removed. Returns them."""
+        g = gtsam.NonlinearFactorGraph()
+        by_index = {f.index: f for f in self.loops}
+        inliers, slots = [], {}
+        for i in range(self.graph.size()):
+            if not self.graph.exists(i):
+                continue
+            f = by_index.get(i)
+            if f is None:
+                inliers.append(g.size())
+                g.add(self.graph.at(i))
+            else:
+                slots[g.size()] = f
+                g.add(gtsam.BetweenFactorPose2(_key("n", f.anchor), _key("n", f.node), _pose(f.relative), f.base))
+        if not slots:
+            return []
+        params = gtsam.GncLMParams()
+        params.setKnownInliers(inliers)
+        opt = gtsam.GncLMOptimizer(g, self.values, params)
+        opt.optimize()
+        w = opt.getWeights()
+        out = [f for k, f in slots.items() if w[k] < 0.5]
+        for f in out:
+            self.remove_loop(f, "GNC outlier")
+        return out
 
     def optimize(self, max_rounds: int = 20) -> list[LoopFactor]:
         """Solve; then repeatedly drop the worst loop constraints whose residual stays large and
@@ -119,11 +160,7 @@ class PoseGraph:
             # the worst quarter per round; in the last round every remaining offender
             worst = [f for _, f in (bad if rnd == max_rounds else bad[: max(1, len(bad) // 4)])]
             for f in worst:
-                self.graph.remove(f.index)
-                self.loops.remove(f)
-                f.record["in_final_graph"] = False
-                f.record["reason"] = "residual after optimization"
-                self.removed.append(f)
+                self.remove_loop(f, "residual after optimization")
             dropped.extend(worst)
             self._solve()
         return dropped

@@ -16,6 +16,16 @@ here the max-pooled grids of Hess et al. 2016) instead of scoring every candidat
 returns the same best pose. The exhaustive mode also yields the match quality: the margin
 to the best separated peak and a covariance from the score distribution (Olson 2009,
 Sec. IV: weights exp(N·(s − s_best)), i.e. the summed probability treated as a log-likelihood).
+
+The covariance is taken from the scores *without* the delta penalty (the penalty is a
+preference for the prediction, not evidence from the scan), in the map (submap grid) x/y
+axes. A window can be as small as one cell, which truncates the distribution (and a 3 × 3
+lattice cannot even step along a corridor that is not axis-aligned), so the moment
+covariance is widened to cover the curvature (Laplace) covariance of the log-likelihood at
+the peak, fitted on its 3 × 3 × 3 neighbourhood; directions the scan does not bound (less
+curvature than the prior's information) get the variance of an unmatched scan
+(``unmatched_covariance``: σ = the largest search windows). A match is thus never trusted
+less than pure prediction, nor more than its window and its curvature show.
 """
 from __future__ import annotations
 
@@ -38,6 +48,8 @@ class MatchResult:
     num_points: int = 0
     on_edge: bool = False     # the best pose lies on the search window's edge
     escalated: bool = False   # found by the repeated search with the largest windows
+    raw_scores: np.ndarray | None = None  # the scores without the delta penalty (exhaustive mode)
+    prior: np.ndarray | None = None       # covariance of an unmatched scan (the truncation ceiling)
 
     @property
     def margin(self) -> float | None:
@@ -49,10 +61,19 @@ class MatchResult:
 
     @property
     def covariance(self) -> np.ndarray | None:
-        """3×3 covariance from the score distribution (exhaustive mode), computed on demand."""
+        """3×3 covariance (map x/y axes, θ) from the unpenalized score distribution (exhaustive
+        mode), computed on demand; truncated directions get the unmatched variance."""
         if self.scores is None:
             return None
-        return _covariance(self.scores, self.params, self.num_points)
+        raw = self.scores if self.raw_scores is None else self.raw_scores
+        return _covariance(raw, self.params, self.num_points, self.prior)
+
+
+def unmatched_covariance(linear_window: float, angular_window: float) -> np.ndarray:
+    """Covariance of a scan whose pose is pure prediction: σ = the largest search windows. No
+    distribution inside those windows has a larger variance, so a matched scan is never trusted
+    less than an unmatched one."""
+    return np.diag([linear_window ** 2, linear_window ** 2, angular_window ** 2])
 
 
 class RealTimeCorrelativeScanMatcher:
@@ -62,6 +83,7 @@ class RealTimeCorrelativeScanMatcher:
         self.angular_window = angular_window
         self.branch_depth = branch_depth
         self.penalty = DeltaPenalty(translation_delta_cost_weight, rotation_delta_cost_weight)
+        self.prior = unmatched_covariance(linear_window, angular_window)
 
     def match(self, grid: MatchGrid, predicted, points: np.ndarray, min_score: float = 0.0,
               linear_window: float | None = None, angular_window: float | None = None) -> MatchResult | None:
@@ -96,14 +118,19 @@ class RealTimeCorrelativeScanMatcher:
             pose = np.array([predicted[0] + dx * res, predicted[1] + dy * res, predicted[2] + params.angles[a]])
             edge = max(abs(dx), abs(dy)) == w or a in (0, len(params.angles) - 1)
             return MatchResult(pose, score, n_cand, on_edge=edge)
-        scores = exhaustive(grid, cells, w, self.penalty, params.angles)
+        raw = exhaustive(grid, cells, w)
+        scores = raw.copy()
+        _kernels.apply_delta_penalty(scores, np.ascontiguousarray(params.angles, dtype=np.float64),
+                                     float(self.penalty.translation_weight), float(self.penalty.rotation_weight),
+                                     float(res))
         a, iy, ix = np.unravel_index(int(np.argmax(scores)), scores.shape)
         best = float(scores[a, iy, ix])
         if best <= min_score:
             return None
         pose = np.array([predicted[0] + (ix - w) * res, predicted[1] + (iy - w) * res, predicted[2] + params.angles[a]])
         edge = iy in (0, 2 * w) or ix in (0, 2 * w) or a in (0, len(params.angles) - 1)
-        return MatchResult(pose, best, n_cand, scores, params, points.shape[0], on_edge=edge)
+        return MatchResult(pose, best, n_cand, scores, params, points.shape[0], on_edge=edge, raw_scores=raw,
+                           prior=self.prior)
 
 
 def _margin(scores, a, iy, ix, lin=2, ang=2) -> float:
@@ -113,15 +140,55 @@ def _margin(scores, a, iy, ix, lin=2, ang=2) -> float:
     return float(scores[a, iy, ix] - other) if np.isfinite(other) else float(scores[a, iy, ix])
 
 
-def _covariance(scores, params: SearchParameters, n_points: int) -> np.ndarray:
-    """Olson's covariance of the score distribution plus the lattice's own quantization (step²/12)."""
+def _covariance(scores, params: SearchParameters, n_points: int, prior: np.ndarray | None = None) -> np.ndarray:
+    """Olson's covariance of the score distribution plus the lattice's own quantization (step²/12);
+    with ``prior``, raised to cover the curvature (Laplace) covariance at the peak, which the
+    window cannot truncate (module docstring)."""
     res = params.resolution
-    offs = np.arange(-params.linear_cells, params.linear_cells + 1) * res
+    w = params.linear_cells
+    offs = np.arange(-w, w + 1) * res
+    angles = np.asarray(params.angles, dtype=np.float64)
     cov = np.empty((3, 3))
-    _kernels.score_covariance(scores, offs, np.asarray(params.angles, dtype=np.float64), float(n_points), cov)
+    _kernels.score_covariance(scores, offs, angles, float(n_points), cov)
     floor = np.array([res * res / 12.0, res * res / 12.0, params.angular_step ** 2 / 12.0])
     cov[np.diag_indices(3)] += floor
+    if prior is not None:
+        cov = _cover(cov, _laplace(scores, offs, angles, float(n_points), prior))
     return cov
 
 
-__all__ = ["RealTimeCorrelativeScanMatcher", "MatchResult"]
+def _laplace(scores, offs, angles, n_points, prior) -> np.ndarray:
+    """Inverse curvature of the log-likelihood N·s at the best lattice pose: a quadratic fitted to
+    the 3 × 3 × 3 neighbourhood (moved inside the window at its edges). Directions with less
+    curvature than the prior's information — flat ones, like a corridor's axis — get the prior."""
+    a, iy, ix = np.unravel_index(int(np.argmax(scores)), scores.shape)
+    idx = [int(np.clip(v, 1, n - 2)) for v, n in zip((a, iy, ix), scores.shape)]
+    rows, vals = [], []
+    for da in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                ka, ky, kx = idx[0] + da, idx[1] + dy, idx[2] + dx
+                x, y, t = offs[kx], offs[ky], angles[ka]
+                rows.append([1.0, x, y, t, 0.5 * x * x, 0.5 * y * y, 0.5 * t * t, x * y, x * t, y * t])
+                vals.append(n_points * float(scores[ka, ky, kx]))
+    c = np.linalg.lstsq(np.array(rows), np.array(vals), rcond=None)[0]
+    info = -np.array([[c[4], c[7], c[8]], [c[7], c[5], c[9]], [c[8], c[9], c[6]]])
+    # in units of the prior's standard deviations, information below 1 means "no better than the prior"
+    sp = np.sqrt(np.diag(prior))
+    lam, vec = np.linalg.eigh(info * np.outer(sp, sp))
+    cov_z = (vec / np.maximum(lam, 1.0)) @ vec.T
+    return cov_z * np.outer(sp, sp)
+
+
+def _cover(a, b) -> np.ndarray:
+    """The smallest covariance of the form A^½ W max(M, 1) Wᵀ A^½ that is ⪰ A and ⪰ B, where W M Wᵀ
+    is B whitened by A."""
+    la, va = np.linalg.eigh(0.5 * (a + a.T))
+    half = va * np.sqrt(np.maximum(la, 1e-300))
+    inv_half = np.linalg.inv(half)
+    mu, wv = np.linalg.eigh(inv_half @ b @ inv_half.T)
+    out = half @ (wv * np.maximum(mu, 1.0)) @ wv.T @ half.T
+    return 0.5 * (out + out.T)
+
+
+__all__ = ["RealTimeCorrelativeScanMatcher", "MatchResult", "unmatched_covariance"]
