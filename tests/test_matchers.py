@@ -172,8 +172,10 @@ def test_stack_cache_keeps_the_most_recent_and_rebuilds_identically():
         for _ in range(5):
             g.insert(np.zeros(2), rng.uniform(-2, 2, (80, 2)))
         subs.append(SimpleNamespace(index=k, grid=g, local_pose=np.zeros(3)))
-    cache = StackCache(2)
-    ms = [SubmapMatcher(s, 3, cache) for s in subs]
+    ms = [SubmapMatcher(s, 3, StackCache(0)) for s in subs]
+    cache = StackCache(ms[1].stack.nbytes + ms[2].stack.nbytes)  # room for the stacks of submaps 1 and 2
+    for m in ms:
+        m.cache = cache
     first = ms[0].stack.data.copy()
     ms[1].stack, ms[2].stack  # evicts submap 0's stack
     assert cache.builds == 3 and len(cache._stacks) == 2 and 0 not in cache._stacks

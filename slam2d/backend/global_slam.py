@@ -25,8 +25,8 @@ from slam2d.matching.real_time import unmatched_covariance
 
 log = logging.getLogger(__name__)
 
-#: precomputation stacks kept for the most recently searched finished submaps (``StackCache``)
-STACK_CACHE_SIZE = 16
+#: bytes of branch-and-bound precomputation stacks kept, most recently searched first (``StackCache``)
+STACK_CACHE_BYTES = 256 * 1024 * 1024
 
 
 class GlobalSlam:
@@ -39,7 +39,7 @@ class GlobalSlam:
         self.lc = lc
         self.graph = PoseGraph(lc.huber_scale, lc.max_residual_translation, math.radians(lc.max_residual_rotation_deg))
         self.matchers: dict[int, SubmapMatcher] = {}
-        self.stacks = StackCache(STACK_CACHE_SIZE)
+        self.stacks = StackCache(STACK_CACHE_BYTES)
         self.sampled: list[int] = []  # nodes matched against finished submaps (and new submaps against them)
         self.sample_distance = cfg.motion_filter.max_distance
         self._last_pose, self._since_sample, self._travel = None, 0, 0.0
@@ -261,7 +261,7 @@ class GlobalSlam:
             "removed_gnc": self.gnc_removed,
             "removed_after_optimization": len(self.graph.removed) - self.consistency_removed - self.gnc_removed,
             "in_final_graph": final,
-            "search_total_s": round(self.search_seconds, 3),
+            "search_total_s": round(self.search_seconds, 3), "stack_builds": self.stacks.builds,
             "search_mean_ms": round(1e3 * self.search_seconds / self.searches, 3) if self.searches else None,
             "optimizations": self.optimizations, "optimize_total_s": round(self.optimize_seconds, 3),
             "final_error": self.graph.last_error[1], "submaps": len(self.submap_local), "nodes": len(self.node_order),

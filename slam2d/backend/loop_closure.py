@@ -51,13 +51,14 @@ class StackCache:
     """The precomputation stacks of the most recently searched finished submaps.
 
     A stack costs several bytes per cell and is needed only while nodes are matched against
-    its submap, which happens in bursts (when the robot is back in that area). Keeping the
-    ``size`` most recently used ones bounds memory by the area being revisited, not by the
-    whole map; an evicted stack is rebuilt, identically, from the submap's uint8 grid.
+    its submap. Stacks are kept, most recently used first, up to ``max_bytes`` in all; beyond
+    it the least recently searched go, and an evicted stack is rebuilt, identically, from the
+    submap's uint8 grid when it is searched again. Memory is then bounded whatever the map's
+    size, and a map that fits the budget never rebuilds a stack.
     """
 
-    def __init__(self, size: int):
-        self.size = size
+    def __init__(self, max_bytes: int):
+        self.max_bytes = max_bytes
         self._stacks: OrderedDict[int, PrecomputationStack] = OrderedDict()
         self.builds = 0
 
@@ -70,7 +71,7 @@ class StackCache:
         st = PrecomputationStack(matcher.grid, matcher.depth)
         self.builds += 1
         self._stacks[key] = st
-        while len(self._stacks) > self.size:
+        while len(self._stacks) > 1 and self.nbytes > self.max_bytes:
             self._stacks.popitem(last=False)
         return st
 
@@ -88,7 +89,7 @@ class SubmapMatcher:
         self.depth = depth
         q = np.clip(np.round(g.prob * 255.0), 0, 255).astype(np.uint8)
         self.grid = MatchGrid(q, g.origin, g.resolution, float(round(g.unknown_probability * 255)))
-        self.cache = StackCache(1) if cache is None else cache
+        self.cache = StackCache(0) if cache is None else cache  # alone: keeps its one stack
         self.prob = MatchGrid(g.prob, g.origin, g.resolution, g.unknown_probability)
         known = np.argwhere(g.known > 0)
         self.center_local = (g.origin + (known.mean(axis=0)[::-1] + 0.5) * g.resolution) if len(known) else g.origin
