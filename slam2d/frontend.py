@@ -30,6 +30,7 @@ from slam2d.grid.submap import ActiveSubmaps
 from slam2d.mapper import MatchingResult
 from slam2d.matching.real_time import RealTimeCorrelativeScanMatcher
 from slam2d.matching.refine import refine
+from slam2d.matching.search import angular_step
 from slam2d.motion_filter import MotionFilter
 from slam2d.range_data import range_data, voxel_filter
 
@@ -186,16 +187,11 @@ class LocalSlam:
         if best is None:
             return None
         # the score surface around the recovered peak: margin and covariance, as for a normal match
-        around = self.matcher._match(grid, best.pose, points, 0.0, 2 * grid.resolution, 2 * self._angular_step(grid, points))
+        step = angular_step(grid.resolution, float(np.sqrt((points ** 2).sum(axis=1)).max()))
+        around = self.matcher._match(grid, best.pose, points, 0.0, 2 * grid.resolution, 2 * step)
         around.escalated = True
         around.on_edge = best.on_edge  # on the edge of the recovery window: the true pose may lie beyond
         return around
-
-    @staticmethod
-    def _angular_step(grid, points):
-        from slam2d.matching.search import SearchParameters
-
-        return SearchParameters.make(0.0, 0.0, grid.resolution, points).angular_step
 
     def add_scan(self, scan) -> MatchingResult:
         timings = {}

@@ -34,22 +34,23 @@ def point_agreement(grid, nodes, poses) -> np.ndarray:
         return np.zeros(0)
     occ = maximum_filter(grid.probability(unknown_value=0.0) > 0.5, size=3, mode="constant", cval=False)
     rows, cols = occ.shape
-    out = np.empty(len(nodes))
+    sizes = np.array([len(n.hits) for n in nodes])
+    if sizes.sum() == 0:
+        return np.ones(len(nodes))
+    # every node's hits moved to its pose in one vectorized transform (as build_map does)
+    hits = np.concatenate([n.hits for n in nodes]).astype(np.float64)
+    pose = np.repeat(np.array([poses[n.scan_index] for n in nodes], dtype=np.float64), sizes, axis=0)
+    c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])
     inv = 1.0 / grid.resolution
-    for k, n in enumerate(nodes):
-        if len(n.hits) == 0:
-            out[k] = 1.0
-            continue
-        x, y, t = poses[n.scan_index]
-        c, s = np.cos(t), np.sin(t)
-        px = x + c * n.hits[:, 0] - s * n.hits[:, 1]
-        py = y + s * n.hits[:, 0] + c * n.hits[:, 1]
-        ci = np.floor((px - grid.origin[0]) * inv).astype(np.int64)
-        ri = np.floor((py - grid.origin[1]) * inv).astype(np.int64)
-        inside = (ci >= 0) & (ci < cols) & (ri >= 0) & (ri < rows)
-        ok = np.zeros(len(px), dtype=bool)
-        ok[inside] = occ[ri[inside], ci[inside]]
-        out[k] = ok.mean()
+    ci = np.floor((pose[:, 0] + c * hits[:, 0] - s * hits[:, 1] - grid.origin[0]) * inv).astype(np.int64)
+    ri = np.floor((pose[:, 1] + s * hits[:, 0] + c * hits[:, 1] - grid.origin[1]) * inv).astype(np.int64)
+    inside = (ci >= 0) & (ci < cols) & (ri >= 0) & (ri < rows)
+    ok = np.zeros(len(hits))
+    ok[inside] = occ[ri[inside], ci[inside]]
+    out = np.ones(len(nodes))
+    has = sizes > 0
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])[has]
+    out[has] = np.add.reduceat(ok, starts) / sizes[has]
     return out
 
 
