@@ -91,8 +91,10 @@ class GlobalSlam:
             if k not in self.submap_local:
                 self.submap_local[k] = np.asarray(sub_local, float)
                 self.submap_anchor[k] = j
-            if self.submap_anchor[k] != j:
-                self.graph.add_intra(self.submap_anchor[k], j, between(self.submap_local[k], local_pose), cov)
+            a = self.submap_anchor[k]
+            if a != j:
+                self.graph.add_intra(a, j, between(self.submap_local[k], local_pose),
+                                     cov + self._drift_covariance(self.nodes[j]["path"] - self.nodes[a]["path"]))
         if self.lc.enabled and self._sample(j, local_pose):
             self._search_node(j)
         self.since_optimize += 1
@@ -101,6 +103,13 @@ class GlobalSlam:
                 self.optimize()
             else:  # nothing new but local chains: the solution would only follow them
                 self.since_optimize = 0
+
+    def _drift_covariance(self, path: float) -> np.ndarray:
+        """What the score surface cannot see: the submap was built along ``path`` metres of local SLAM
+        and drifted with it, so a node's pose relative to the submap's first node is uncertain by a
+        share of that path (isotropic in translation, so the same in every frame)."""
+        t, r = self.lc.local_drift * path, math.radians(self.lc.local_drift_deg) * path
+        return np.diag([t * t, t * t, r * r])
 
     def _sample(self, j, local_pose) -> bool:
         """Every ``sample_every_n_nodes``-th node, or sooner once the robot travelled as far as that many
