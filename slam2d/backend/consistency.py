@@ -27,9 +27,9 @@ from slam2d.geometry import between, compose, inverse
 class ConsistencyParams:
     max_chain: float = 30.0   # m of local path on the two legs together
     tol_t: float = 0.3        # m
-    drift_t: float = 0.05     # m per m of chain
+    drift_t: float = 0.03     # m per m of chain
     tol_r: float = 0.035      # rad
-    drift_r: float = 0.01     # rad per m of chain
+    drift_r: float = 0.005    # rad per m of chain (0.3°)
     min_support: int = 0
 
 
