@@ -40,3 +40,45 @@ def test_health_flags_untrusted_matches():
     local = {"matched_scans": 900, "untrusted": 100}
     h = assess(config_from_dict({}), [], np.zeros((0, 3)), local)
     assert h["status"] == "BROKEN" and "matched with confidence" in h["reasons"][0]
+
+
+def _box_scan(pose, half=(5.0, 3.0), person=None, beams=360):
+    """Hits of a 360° scan taken at ``pose`` inside a box room centred on the origin (tracking frame),
+    with an optional round obstacle (x, y, radius) that only this scan sees."""
+    from slam2d.mapper import Node
+
+    x, y, th = pose
+    hits = []
+    for a in np.linspace(-math.pi, math.pi, beams, endpoint=False):
+        dx, dy = math.cos(th + a), math.sin(th + a)
+        r = min((half[0] * math.copysign(1, dx) - x) / dx if abs(dx) > 1e-9 else math.inf,
+                (half[1] * math.copysign(1, dy) - y) / dy if abs(dy) > 1e-9 else math.inf)
+        if person is not None:  # ray / circle
+            px, py, pr = person
+            b = dx * (x - px) + dy * (y - py)
+            c = (x - px) ** 2 + (y - py) ** 2 - pr * pr
+            if b * b - c >= 0 and -b - math.sqrt(b * b - c) > 0:
+                r = min(r, -b - math.sqrt(b * b - c))
+        hits.append((r * math.cos(a), r * math.sin(a)))
+    return Node(0, 0.0, np.array(pose), np.array(hits, np.float32), np.zeros((0, 2), np.float32), np.zeros(2, np.float32))
+
+
+def test_free_space_check_ignores_a_person_seen_by_one_scan_and_flags_a_wrong_pose():
+    from slam2d.health import MAX_VIOLATION, _beams, _violation, _world, free_space_violation
+
+    a_pose, b_pose = np.array([-1.0, 0.0, 0.0]), np.array([1.0, 0.5, 0.4])
+    a = _box_scan(a_pose)
+    b = _box_scan(b_pose, person=(1.5, -0.3, 0.4))  # someone stood next to b while it was taken
+    a.scan_index, b.scan_index = 0, 1
+    right = np.array([a_pose, b_pose])
+    # one way the person is a violation (b's hits on them lie in a's free space), and a big one ...
+    (o_a, _, ends_a), (_, hits_b, _) = _world([a, b], right)
+    bad, seen = _violation(hits_b, o_a, _beams(o_a, ends_a), 0.05)
+    assert bad / seen > MAX_VIOLATION
+    # ... but nothing of a's lies in b's free space: the pair agrees
+    v = free_space_violation([a, b], right, 0.05)
+    assert (v <= MAX_VIOLATION).all(), v
+    # the same scans with b's pose 0.4 m and 3° off: each sees the other's walls in its free space
+    wrong = np.array([a_pose, compose(b_pose, [0.4, -0.3, math.radians(3.0)])])
+    v = free_space_violation([a, b], wrong, 0.05)
+    assert (v > MAX_VIOLATION).all(), v
