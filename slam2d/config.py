@@ -96,7 +96,8 @@ class LoopClosureConfig(_Section):
     """Global SLAM: branch-and-bound loop closure (Hess et al. 2016, Sec. V) and the GTSAM pose graph."""
 
     enabled: bool = Field(True, description="Search loop closures and optimize the pose graph (off = local SLAM only, like --no-loop-closure).")
-    min_score: float = Field(0.55, gt=0.0, lt=1.0, description="Smallest mean probability under the scan's points that makes a match a constraint (Cartographer: 0.55).")
+    min_score: float = Field(0.55, gt=0.0, lt=1.0, description="Smallest mean probability under the scan's points that makes a match a constraint (Cartographer: 0.55), unless min_relative_score lowers it for a submap.")
+    min_relative_score: float = Field(0.7, gt=0.0, le=1.0, description="A submap's own nodes, at their own poses, score a mean probability that depends on how often its cells were seen (a log filtered to a scan every 20 cm, or sparse, sees each wall a few times: about 0.6; a dense log about 0.85). A match against it is accepted from this share of that self-score when that is below min_score.")
     linear_search_window: float = Field(3.0, gt=0.0, description="Half-width of the x/y window around the estimated pose [m].")
     angular_search_window_deg: float = Field(15.0, gt=0.0, le=180.0, description="Half-width of the rotation window [deg].")
     branch_depth: int = Field(6, ge=1, le=8, description="Precomputation grids of widths 1 … 2^depth cells.")

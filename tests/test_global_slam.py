@@ -163,3 +163,36 @@ def test_nodes_are_sampled_per_count_or_per_distance():
     picked_sparse = [j for j in range(20) if sparse._sample(j, np.array([1.0 * j, 0.0, 0.0]))]
     assert picked_dense == [4, 9, 14, 19]
     assert picked_sparse == list(range(1, 20))
+
+
+def test_loop_score_threshold_follows_how_often_a_submap_was_observed():
+    """A submap whose own nodes score low at their own poses (each wall seen by a few scans) gets a
+    lower loop threshold: its own scans re-scored must pass it, and a scan placed 0.7 m and 20° off must not."""
+    from slam2d.backend.global_slam import min_score_for
+    from slam2d.backend.loop_closure import SubmapMatcher, loop_points
+    from slam2d.io.source import open_source
+
+    cfg = SlamConfig()
+    lc = cfg.loop_closure
+    assert min_score_for(lc, 0.9) == lc.min_score and min_score_for(lc, float("nan")) == lc.min_score
+    assert min_score_for(lc, 0.6) == pytest.approx(lc.min_relative_score * 0.6)
+    local = LocalSlam(cfg)
+    kept = {}
+    for scan in open_source(BUNDLED):
+        r = local.add_scan(scan)
+        if r.inserted:
+            kept[scan.index] = (loop_points(r.range_data.hits, lc.voxel_filter_size), r.local_pose)
+        if local.finished_submaps:
+            break
+    sub = local.finished_submaps[0]
+    m = SubmapMatcher(sub, lc.branch_depth)
+    own = [kept[j] for j in sub.node_indices]
+    s = m.self_score(own)
+    threshold = min_score_for(lc, s)
+    j = sub.node_indices[len(sub.node_indices) // 2]
+    pts, pose = kept[j]
+    found = m.match(pts, pose, 0.3, math.radians(3), threshold, (20.0, 10.0, 1.0, 20))
+    assert found is not None and found.reason is None
+    assert np.hypot(*(found.pose[:2] - pose[:2])) < 0.05
+    off = m.self_score([(pts, compose(pose, [0.5, 0.5, math.radians(20.0)]))])
+    assert off < threshold

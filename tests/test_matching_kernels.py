@@ -47,6 +47,26 @@ def test_score_window_and_candidates_oracle():
     np.testing.assert_allclose(sc, [want[a, dy + 3, dx + 3] for a, dx, dy in cands], rtol=1e-5)
 
 
+@pytest.mark.parametrize("dtype,unknown", [(np.float32, 0.1), (np.uint8, 31.0)])
+@pytest.mark.parametrize("shape", [(1, 1), (3, 7), (23, 31)])
+def test_precomputation_levels_oracle(dtype, unknown, shape):
+    """Each level (built from the level below) holds, at [r + 2^d − 1, c + 2^d − 1], the max over the
+    2^d × 2^d block starting at grid cell (r, c), cells outside the grid counting as ``unknown``."""
+    rng = np.random.default_rng(shape[0])
+    v = (rng.random(shape) * 255).astype(dtype) if dtype == np.uint8 else rng.random(shape).astype(dtype)
+    st = PrecomputationStack(MatchGrid(v, np.zeros(2), 0.05, unknown), 5)
+    rows, cols = shape
+    for d in range(6):
+        w, p = 1 << d, (1 << d) - 1
+        big = np.full((rows + 2 * w, cols + 2 * w), dtype(unknown), dtype)
+        big[w:w + rows, w:w + cols] = v
+        lvl = st.level(d)
+        assert lvl.shape == (rows + p, cols + p)
+        for r in range(-p, rows):
+            for c in range(-p, cols):
+                assert lvl[r + p, c + p] == big[r + w:r + 2 * w, c + w:c + 2 * w].max(), (d, r, c)
+
+
 @pytest.mark.parametrize("width", [1, 2, 4, 8, 16])
 def test_sliding_max_oracle(width):
     rng = np.random.default_rng(width)

@@ -39,6 +39,7 @@ class GlobalSlam:
         self.lc = lc
         self.graph = PoseGraph(lc.huber_scale, lc.max_residual_translation, math.radians(lc.max_residual_rotation_deg))
         self.matchers: dict[int, SubmapMatcher] = {}
+        self.min_scores: dict[int, float] = {}  # per finished submap: the score a loop match must reach
         self.stacks = StackCache(STACK_CACHE_BYTES)
         self.sampled: list[int] = []  # nodes matched against finished submaps (and new submaps against them)
         self.sample_distance = cfg.motion_filter.max_distance
@@ -129,7 +130,10 @@ class GlobalSlam:
     def add_finished_submap(self, submap):
         if not self.lc.enabled:
             return
-        self.matchers[submap.index] = SubmapMatcher(submap, self.lc.branch_depth, self.stacks)
+        m = SubmapMatcher(submap, self.lc.branch_depth, self.stacks)
+        self.matchers[submap.index] = m
+        own = [(self.nodes[j]["points"], self.nodes[j]["local"]) for j in submap.node_indices if j in self.nodes]
+        self.min_scores[submap.index] = min_score_for(self.lc, m.self_score(own))
         # earlier nodes near the new submap (sampled), excluding those inside it
         inside = set(submap.node_indices)
         first = min(inside, default=0)
@@ -167,8 +171,9 @@ class GlobalSlam:
         initial = compose(m.submap.local_pose, rel)
         lc = self.lc
         t0 = time.perf_counter()
+        min_score = self.min_scores[k]
         res = m.match(node["points"], initial, lc.linear_search_window, math.radians(lc.angular_search_window_deg),
-                      lc.min_score, (lc.refine_occupied_weight, lc.refine_translation_weight, lc.refine_rotation_weight, 20),
+                      min_score, (lc.refine_occupied_weight, lc.refine_translation_weight, lc.refine_rotation_weight, 20),
                       lc.min_margin, (lc.margin_window, math.radians(lc.margin_window_deg)),
                       (lc.margin_exclusion, math.radians(lc.margin_exclusion_deg)))
         dt = time.perf_counter() - t0
@@ -180,9 +185,9 @@ class GlobalSlam:
         frm = self._nearest_submap_node(k, None if res is None else res.pose)
         rec = {"submap": int(k), "from_scan": int(frm), "to_scan": int(j),
                "from_stamp": self.nodes[frm]["stamp"], "to_stamp": node["stamp"],
-               "search_ms": round(dt * 1e3, 3)}
+               "search_ms": round(dt * 1e3, 3), "min_score": round(min_score, 4)}
         if res is None:
-            rec.update({"relative_pose": None, "score": None, "accepted": False, "reason": f"no match above {lc.min_score}",
+            rec.update({"relative_pose": None, "score": None, "accepted": False, "reason": f"no match above {min_score:.3f}",
                         "in_final_graph": False})
         else:
             cov = node_frame_covariance(_floored(res.covariance, lc.loop_sigma_translation,
@@ -275,6 +280,14 @@ class GlobalSlam:
             "optimizations": self.optimizations, "optimize_total_s": round(self.optimize_seconds, 3),
             "final_error": self.graph.last_error[1], "submaps": len(self.submap_local), "nodes": len(self.node_order),
         }}
+
+
+def min_score_for(lc, self_score: float) -> float:
+    """The score a loop match against a submap must reach: ``min_score``, or ``min_relative_score``
+    of the submap's self-score when that is lower (a sparsely observed submap)."""
+    if not math.isfinite(self_score):
+        return lc.min_score
+    return min(lc.min_score, lc.min_relative_score * self_score)
 
 
 def node_frame_covariance(cov, theta) -> np.ndarray:

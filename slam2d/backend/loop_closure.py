@@ -1,7 +1,9 @@
 """Loop-closure constraints (Hess et al. 2016, Sec. V): a node's scan is matched against a finished
 submap by branch-and-bound correlative search over precomputed max-pooled grids, scored as
 the mean probability under the scan's points; matches above ``min_score`` are refined below
-cell size and then verified before they become constraints:
+cell size and then verified before they become constraints. How high a right match scores
+depends on how often the submap's cells were observed, so the caller lowers ``min_score`` for
+a submap whose own nodes score low at their own poses (``self_score``):
 
 - re-score: the mean probability at the refined pose (the float grid, nearest cell) must
   still reach ``min_score`` (the lattice score alone can be a lucky cell);
@@ -93,6 +95,17 @@ class SubmapMatcher:
         self.prob = MatchGrid(g.prob, g.origin, g.resolution, g.unknown_probability)
         known = np.argwhere(g.known > 0)
         self.center_local = (g.origin + (known.mean(axis=0)[::-1] + 0.5) * g.resolution) if len(known) else g.origin
+
+    def self_score(self, points_and_poses) -> float:
+        """Mean probability under the submap's own nodes' points at their own poses (grid frame):
+        the score a perfect match reaches in this submap, which depends on how often its cells
+        were observed. NaN without nodes."""
+        scores = []
+        for pts, pose in points_and_poses:
+            if len(pts):
+                cells = self.prob.cells(pts, np.asarray(pose, dtype=float), np.zeros(1))
+                scores.append(float(exhaustive(self.prob, cells, 0)[0, 0, 0]))
+        return float(np.mean(scores)) if scores else float("nan")
 
     @property
     def stack(self) -> PrecomputationStack:

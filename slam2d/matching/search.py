@@ -88,10 +88,7 @@ class PrecomputationStack:
         self.level(0)[:, :] = values
         fill = _upper_fill(grid.unknown, values.dtype)
         for d in range(1, depth + 1):
-            p = self.offsets[d]
-            padded = np.full((rows + p, cols + p), fill, dtype=values.dtype)
-            padded[p:, p:] = values
-            sliding_max(padded, 1 << d, fill, out=self.level(d))
+            _double_block(self.level(d - 1), 1 << (d - 1), fill, self.level(d))
         self.grid = MatchGrid(self.level(0), grid.origin, grid.resolution, grid.unknown)
 
     def level(self, d: int) -> np.ndarray:
@@ -103,6 +100,21 @@ class PrecomputationStack:
     @property
     def nbytes(self) -> int:
         return self.data.nbytes
+
+
+def _double_block(prev: np.ndarray, h: int, fill, out: np.ndarray) -> None:
+    """Level d from level d − 1 (blocks of width h = 2^(d−1)): a block of width 2h starting at a
+    cell is the max of the four width-h blocks starting at it, h to its right, h above and both.
+    With the low-side padding (level d − 1 is offset by h − 1, level d by 2h − 1) that is
+    ``out[i, j] = max(prev[i − h, j − h], prev[i − h, j], prev[i, j − h], prev[i, j])``, blocks
+    beyond ``prev`` counting as ``fill``: two maxima of shifted views instead of a sliding window
+    of width 2^d over the grid."""
+    r, c = prev.shape
+    rows, cols = out.shape  # r + h, c + h
+    padded = np.full((r + 2 * h, c + 2 * h), fill, dtype=prev.dtype)
+    padded[h:h + r, h:h + c] = prev
+    half = np.maximum(padded[:rows, :], padded[h:h + rows, :])
+    np.maximum(half[:, :cols], half[:, h:h + cols], out=out)
 
 
 def _upper_fill(unknown: float, dtype) -> np.generic:
