@@ -180,5 +180,26 @@ def test_frozen_grid_keeps_its_probabilities_without_log_odds():
     r0, r1, c0, c1 = g.known_bounds()
     g.freeze(r0, r1, c0, c1)
     assert g.logodds.size == 0 and g.shape == (r1 - r0, c1 - c0)
-    # the incrementally kept probabilities may differ from a fresh log-odds conversion by one float32 ulp
-    np.testing.assert_allclose(g.probability(unknown_value=np.nan), before[r0:r1, c0:c1], rtol=0, atol=1e-6)
+    # kept as uint8 (p × 255) beside the known mask: two bytes a cell, within half a step of the float
+    assert g.prob.dtype == np.uint8 and g.prob.nbytes + g.known.nbytes == 2 * g.prob.size
+    after = g.probability(unknown_value=np.nan)
+    assert np.array_equal(np.isnan(after), np.isnan(before[r0:r1, c0:c1]))  # unknown stays unknown
+    np.testing.assert_allclose(after, before[r0:r1, c0:c1], rtol=0, atol=0.5 / 255 + 1e-6)
+
+
+def test_map_export_in_bands_equals_one_pass(monkeypatch):
+    import slam2d.grid.map_export as me
+
+    g = ProbabilityGrid(0.05)
+    rng = np.random.default_rng(9)
+    hits, misses = rng.uniform(-4, 4, (60, 2)), rng.uniform(-5, 5, (20, 2))
+    for _ in range(50):  # the same scan again and again: free cells need many misses at 0.49
+        g.insert(rng.uniform(-0.1, 0.1, 2), hits, misses)
+    np.testing.assert_array_equal(np.concatenate([g.probability_rows(a, min(a + 7, g.shape[0]), np.nan)
+                                                  for a in range(0, g.shape[0], 7)]), g.probability(np.nan))
+    whole = me.occupancy_image(g, 0.65, 0.196)
+    monkeypatch.setattr(me, "BAND_ROWS", 5)
+    banded = me.occupancy_image(g, 0.65, 0.196)
+    np.testing.assert_array_equal(banded[0], whole[0])
+    assert banded[1:] == whole[1:]
+    assert (whole[0] == me.FREE).any() and (whole[0] == me.OCCUPIED).any()

@@ -263,6 +263,7 @@ class GlobalSlam:
             self.gnc_removed = len(self.graph.gnc_prune())
             self.optimize_seconds += time.perf_counter() - t0
         self.optimize()
+        self.stacks.clear()  # no more searches: the precomputation stacks go before the map is built
         return {j: self.graph.node_pose(j) for j in self.node_order}
 
     def summary(self) -> dict:

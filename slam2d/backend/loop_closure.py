@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slam2d.geometry import between
+from slam2d.grid.probability_grid import dequantize, quantize
 from slam2d.matching.real_time import _covariance, unmatched_covariance
 from slam2d.matching.refine import refine
 from slam2d.matching.search import MatchGrid, PrecomputationStack, SearchParameters, branch_and_bound, exhaustive
@@ -81,6 +82,10 @@ class StackCache:
     def nbytes(self) -> int:
         return sum(st.nbytes for st in self._stacks.values())
 
+    def clear(self) -> None:
+        """Drop every stack (a later search rebuilds its own)."""
+        self._stacks.clear()
+
 
 class SubmapMatcher:
     """Branch-and-bound matcher for one finished submap."""
@@ -89,10 +94,9 @@ class SubmapMatcher:
         g = submap.grid
         self.submap = submap
         self.depth = depth
-        q = np.clip(np.round(g.prob * 255.0), 0, 255).astype(np.uint8)
+        q = g.prob if g.prob.dtype == np.uint8 else quantize(g.prob)  # a finished submap's grid is uint8 already
         self.grid = MatchGrid(q, g.origin, g.resolution, float(round(g.unknown_probability * 255)))
         self.cache = StackCache(0) if cache is None else cache  # alone: keeps its one stack
-        self.prob = MatchGrid(g.prob, g.origin, g.resolution, g.unknown_probability)
         known = np.argwhere(g.known > 0)
         self.center_local = (g.origin + (known.mean(axis=0)[::-1] + 0.5) * g.resolution) if len(known) else g.origin
 
@@ -101,10 +105,11 @@ class SubmapMatcher:
         the score a perfect match reaches in this submap, which depends on how often its cells
         were observed. NaN without nodes."""
         scores = []
+        prob = self.prob
         for pts, pose in points_and_poses:
             if len(pts):
-                cells = self.prob.cells(pts, np.asarray(pose, dtype=float), np.zeros(1))
-                scores.append(float(exhaustive(self.prob, cells, 0)[0, 0, 0]))
+                cells = prob.cells(pts, np.asarray(pose, dtype=float), np.zeros(1))
+                scores.append(float(exhaustive(prob, cells, 0)[0, 0, 0]))
         return float(np.mean(scores)) if scores else float("nan")
 
     @property
@@ -112,8 +117,15 @@ class SubmapMatcher:
         return self.cache.get(self)
 
     @property
+    def prob(self) -> MatchGrid:
+        """The uint8 grid as float probabilities, for refinement and verification; made for each
+        search that needs it and dropped after (a finished submap keeps 1 byte a cell)."""
+        g = self.grid
+        return MatchGrid(dequantize(g.values), g.origin, g.resolution, self.submap.grid.unknown_probability)
+
+    @property
     def nbytes(self) -> int:
-        return self.grid.values.nbytes + self.prob.values.nbytes
+        return self.grid.values.nbytes
 
     def match(self, points, initial, linear_window, angular_window, min_score, refine_weights,
               min_margin=0.0, margin_window=(0.6, 0.035), margin_exclusion=(0.2, 0.0175)) -> LoopMatch | None:
@@ -128,20 +140,22 @@ class SubmapMatcher:
         a, dx, dy, score = found
         res = self.grid.resolution
         pose = np.array([initial[0] + dx * res, initial[1] + dy * res, initial[2] + params.angles[a]])
-        pose, _ = refine(self.prob, pose, points, *refine_weights)
+        prob = self.prob
+        pose, _ = refine(prob, pose, points, *refine_weights)
         out = LoopMatch(pose, between(self.submap.local_pose, pose), score / 255.0, 0.0)
-        self.verify(out, points, min_score, min_margin, margin_window, margin_exclusion, params.angular_step)
+        self.verify(out, points, min_score, min_margin, margin_window, margin_exclusion, params.angular_step, prob)
         out.seconds = time.perf_counter() - t0
         return out
 
-    def verify(self, m: LoopMatch, points, min_score, min_margin, window, exclusion, step) -> LoopMatch:
+    def verify(self, m: LoopMatch, points, min_score, min_margin, window, exclusion, step, prob=None) -> LoopMatch:
         """Fill rescore, margin and covariance from an exhaustive window around the refined pose."""
         res = self.grid.resolution
+        prob = self.prob if prob is None else prob
         n_ang = max(2, int(np.ceil(window[1] / step)))
         w = max(2, int(np.ceil(window[0] / res)))
         angles = step * np.arange(-n_ang, n_ang + 1, dtype=np.float64)
-        cells = self.prob.cells(points, m.pose, angles)
-        scores = exhaustive(self.prob, cells, w)
+        cells = prob.cells(points, m.pose, angles)
+        scores = exhaustive(prob, cells, w)
         m.rescore = float(scores[n_ang, w, w])
         m.margin = separated_margin(scores, int(np.ceil(exclusion[0] / res)), int(np.ceil(exclusion[1] / step)))
         params = SearchParameters(angles, w, step, res)

@@ -11,16 +11,23 @@ from slam2d.grid.probability_grid import ProbabilityGrid
 FREE, UNKNOWN, OCCUPIED = 254, 205, 0
 
 
+#: rows converted at a time when exporting
+BAND_ROWS = 512
+
+
 def occupancy_image(grid: ProbabilityGrid, occupied_thresh: float, free_thresh: float):
     """(image rows top-first as uint8, origin x, origin y of the lower-left pixel), cropped to known cells."""
     b = grid.known_bounds()
     if b is None:
         return np.full((1, 1), UNKNOWN, dtype=np.uint8), float(grid.origin[0]), float(grid.origin[1])
     r0, r1, c0, c1 = b
-    p = grid.probability(unknown_value=np.nan)[r0:r1, c0:c1]
-    img = np.full(p.shape, UNKNOWN, dtype=np.uint8)
-    img[p > occupied_thresh] = OCCUPIED
-    img[p < free_thresh] = FREE
+    img = np.full((r1 - r0, c1 - c0), UNKNOWN, dtype=np.uint8)
+    for a in range(r0, r1, BAND_ROWS):  # in bands of rows: a large map never exists as floats at once
+        z = min(a + BAND_ROWS, r1)
+        p = grid.probability_rows(a, z, unknown_value=np.nan)[:, c0:c1]
+        band = img[a - r0:z - r0]
+        band[p > occupied_thresh] = OCCUPIED
+        band[p < free_thresh] = FREE
     ox = float(grid.origin[0] + c0 * grid.resolution)
     oy = float(grid.origin[1] + r0 * grid.resolution)
     return img[::-1].copy(), ox, oy

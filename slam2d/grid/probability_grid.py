@@ -82,9 +82,10 @@ class ProbabilityGrid:
     def freeze(self, r0, r1, c0, c1):
         """Crop to [r0:r1, c0:c1] and drop the insertion buffers (no more inserts)."""
         known = np.ascontiguousarray(self.known[r0:r1, c0:c1])
-        # matching and export read probabilities only: the log-odds go (a quarter of a finished submap's bytes)
+        # matching and export read probabilities only: the log-odds go, and the probabilities are kept
+        # as uint8 (p × 255, what branch-and-bound scores anyway): 2 bytes a cell with the known mask
         self.logodds = np.zeros((0, 0), dtype=np.float32)
-        self.prob = np.ascontiguousarray(self.prob[r0:r1, c0:c1])
+        self.prob = quantize(self.prob[r0:r1, c0:c1])
         # a frozen grid is read, never matched by local SLAM again: its likelihood field goes
         self.field_sigma = None
         self.field = np.zeros((0, 0), dtype=np.float32)
@@ -184,11 +185,16 @@ class ProbabilityGrid:
         return f.astype(np.float32)
 
     def probability(self, unknown_value: float = 0.5) -> np.ndarray:
-        if self._known is not None:  # frozen: ``prob`` holds every known cell's probability
-            return np.where(self._known > 0, self.prob, np.float32(unknown_value)).astype(np.float32)
-        out = np.empty(self.shape, dtype=np.float32)
+        return self.probability_rows(0, self.shape[0], unknown_value)
+
+    def probability_rows(self, r0: int, r1: int, unknown_value: float = 0.5) -> np.ndarray:
+        """``probability()[r0:r1]`` without converting the whole grid (a large map is exported in bands)."""
+        if self._known is not None:  # frozen: ``prob`` holds every known cell's probability × 255
+            return np.where(self._known[r0:r1] > 0, dequantize(self.prob[r0:r1]), np.float32(unknown_value)).astype(np.float32)
+        out = np.empty(self.logodds[r0:r1].shape, dtype=np.float32)
         if out.size:
-            _kernels.logodds_to_probability(self.logodds, self.known, np.float32(unknown_value), out)
+            known = (self.stamp[r0:r1] > 0).view(np.uint8)
+            _kernels.logodds_to_probability(self.logodds[r0:r1], known, np.float32(unknown_value), out)
         return out
 
     def known_bounds(self):
@@ -198,6 +204,16 @@ class ProbabilityGrid:
             return None
         cols = np.flatnonzero(self.known.any(axis=0))
         return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+
+
+def quantize(prob: np.ndarray) -> np.ndarray:
+    """Probabilities as uint8 (p × 255, rounded)."""
+    return np.ascontiguousarray(np.clip(np.round(np.asarray(prob, dtype=np.float32) * 255.0), 0, 255).astype(np.uint8))
+
+
+def dequantize(q: np.ndarray) -> np.ndarray:
+    """uint8 probabilities back to float32 in [0, 1]."""
+    return q.astype(np.float32) * np.float32(1.0 / 255.0)
 
 
 def insert_scan(grids: list[ProbabilityGrid], origin_xy, hits: np.ndarray, misses: np.ndarray | None = None):

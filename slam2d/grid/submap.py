@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from slam2d.grid.probability_grid import ProbabilityGrid, insert_scan
+from slam2d.grid.probability_grid import ProbabilityGrid, dequantize, insert_scan
 from slam2d.matching.search import MatchGrid
 
 
@@ -40,7 +40,8 @@ class Submap:
     def probability_grid(self) -> MatchGrid:
         """Hit probabilities (unknown cells at the minimum probability), for sub-cell refinement."""
         g = self.grid
-        return MatchGrid(g.prob, g.origin, g.resolution, g.unknown_probability)
+        values = dequantize(g.prob) if g.prob.dtype == np.uint8 else g.prob  # a finished submap keeps uint8
+        return MatchGrid(values, g.origin, g.resolution, g.unknown_probability)
 
     def finish(self):
         """Freeze: crop to the observed cells and drop the insertion buffers."""
