@@ -1,6 +1,8 @@
-"""Numba kernels of the per-scan range data (Cartographer's ``RangeData`` and ``VoxelFilter``).
+"""Numba kernels of the per-scan range data (Cartographer's ``RangeData`` and ``VoxelFilter``)
+and of the health report's free-space test.
 
-Plain-numpy oracles of both live in ``tests/test_range_data.py``.
+Plain-numpy oracles live in ``tests/test_range_data.py`` and, for ``free_space_counts``,
+``slam2d.health._violation`` (compared in ``tests/test_health.py``).
 """
 from __future__ import annotations
 
@@ -107,3 +109,41 @@ def finite_max_count(ranges):
             elif r == top:
                 count += 1
     return top, count
+
+
+@njit(cache=True, nogil=True)
+def free_space_counts(hits, hit_start, origins, bearings, ranges, beam_start, steps, pairs, resolution, range_share):
+    """For every pair (a, b): (hits of node a lying in node b's free space, hits of a inside b's field
+    of view). Node a's hits are ``hits[hit_start[a]:hit_start[a + 1]]`` (map frame); node b's beams
+    are its sorted ``bearings`` and ``ranges`` from ``origins[b]`` in ``[beam_start[b], beam_start[b + 1])``,
+    ``steps[b]`` their median bearing step. A hit is seen when the two beams either side of its
+    bearing are at most 3 steps apart, and violates when it lies more than
+    ``2 · resolution + range_share · range`` in front of the nearer of their returns."""
+    out = np.zeros((pairs.shape[0], 2), dtype=np.int64)
+    two_pi = 2.0 * math.pi
+    for p in range(pairs.shape[0]):
+        a, b = pairs[p, 0], pairs[p, 1]
+        s0, s1 = beam_start[b], beam_start[b + 1]
+        nb = s1 - s0
+        if nb < 3:
+            continue
+        ox, oy = origins[b, 0], origins[b, 1]
+        bad = 0
+        seen = 0
+        for h in range(hit_start[a], hit_start[a + 1]):
+            dx, dy = hits[h, 0] - ox, hits[h, 1] - oy
+            qb = math.atan2(dy, dx)
+            qr = math.hypot(dx, dy)
+            idx = np.searchsorted(bearings[s0:s1], qb)
+            lo = (idx - 1) % nb
+            hi = idx % nb
+            span = bearings[s0 + hi] - bearings[s0 + lo]
+            span -= two_pi * math.floor(span / two_pi)
+            if span <= 3.0 * steps[b]:
+                seen += 1
+                free = min(ranges[s0 + lo], ranges[s0 + hi])
+                if qr < free - (2.0 * resolution + range_share * qr):
+                    bad += 1
+        out[p, 0] = bad
+        out[p, 1] = seen
+    return out

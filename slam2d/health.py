@@ -85,6 +85,8 @@ def free_space_violation(nodes, poses, resolution: float) -> np.ndarray:
     NaN where no neighbour sees any of them."""
     from scipy.spatial import cKDTree
 
+    from slam2d import _kernels
+
     out = np.full(len(nodes), np.nan)
     if len(nodes) < 2:
         return out
@@ -92,22 +94,35 @@ def free_space_violation(nodes, poses, resolution: float) -> np.ndarray:
     origins = np.array([w[0] for w in world])
     path = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(origins, axis=0).T))])
     beams = [_beams(o, ends) for o, _, ends in world]
+    # the neighbours each node is compared with: the nearest of the same pass, then of other passes
     tree = cKDTree(origins)
+    picks = []
     for i, near in enumerate(tree.query_ball_point(origins, NEIGHBOUR_RADIUS)):
         cand = np.array(sorted(c for c in near if c != i), dtype=np.int64)
         if len(cand) == 0:
             continue
         dist = np.hypot(*(origins[cand] - origins[i]).T)
         same = np.abs(path[cand] - path[i]) < 2 * NEIGHBOUR_RADIUS
-        shares = []
         for mask in (same, ~same):
-            for j in cand[mask][np.argsort(dist[mask], kind="stable")[:NEIGHBOURS_PER_PASS]]:
-                b1, c1 = _violation(world[i][1], origins[j], beams[j], resolution)
-                b2, c2 = _violation(world[j][1], origins[i], beams[i], resolution)
-                if c1 and c2:
-                    shares.append(min(b1 / c1, b2 / c2))
-        if shares:
-            out[i] = float(np.mean(shares))
+            picks.extend((i, int(j)) for j in cand[mask][np.argsort(dist[mask], kind="stable")[:NEIGHBOURS_PER_PASS]])
+    if not picks:
+        return out
+    pairs = np.array(picks, dtype=np.int64)
+    # both directions of every pair in one kernel call
+    both = np.concatenate([pairs, pairs[:, ::-1]])
+    hit_start = np.concatenate([[0], np.cumsum([len(w[1]) for w in world])]).astype(np.int64)
+    beam_start = np.concatenate([[0], np.cumsum([len(b[0]) for b in beams])]).astype(np.int64)
+    counts = _kernels.free_space_counts(
+        np.concatenate([w[1] for w in world]).reshape(-1, 2), hit_start, origins,
+        np.concatenate([b[0] for b in beams]), np.concatenate([b[1] for b in beams]), beam_start,
+        np.array([b[2] for b in beams]), both, float(resolution), VIOLATION_RANGE_SHARE)
+    ij, ji = counts[:len(pairs)], counts[len(pairs):]
+    ok = (ij[:, 1] > 0) & (ji[:, 1] > 0)
+    share = np.minimum(ij[:, 0] / np.maximum(ij[:, 1], 1), ji[:, 0] / np.maximum(ji[:, 1], 1))
+    node, share = pairs[ok, 0], share[ok]  # grouped by node already (picks run in node order)
+    if len(node):
+        first = np.flatnonzero(np.r_[True, node[1:] != node[:-1]])
+        out[node[first]] = np.add.reduceat(share, first) / np.diff(np.r_[first, len(node)])
     return out
 
 

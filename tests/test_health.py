@@ -82,3 +82,29 @@ def test_free_space_check_ignores_a_person_seen_by_one_scan_and_flags_a_wrong_po
     wrong = np.array([a_pose, compose(b_pose, [0.4, -0.3, math.radians(3.0)])])
     v = free_space_violation([a, b], wrong, 0.05)
     assert (v > MAX_VIOLATION).all(), v
+
+
+def test_free_space_kernel_matches_the_numpy_oracle():
+    from slam2d import _kernels
+    from slam2d.health import VIOLATION_RANGE_SHARE, _beams, _violation, _world
+
+    rng = np.random.default_rng(4)
+    nodes = []
+    for k in range(6):
+        n = _box_scan((rng.uniform(-3, 3), rng.uniform(-2, 2), rng.uniform(-math.pi, math.pi)), beams=int(rng.integers(3, 200)),
+                      person=(rng.uniform(-3, 3), rng.uniform(-2, 2), 0.3) if k % 2 else None)
+        n.hits = n.hits[rng.random(len(n.hits)) < 0.8]  # dropped beams: gaps wider than 3 steps
+        n.scan_index = k
+        nodes.append(n)
+    poses = np.array([n.local_pose for n in nodes]) + rng.normal(0, 0.1, (6, 3))  # some wrong poses
+    world = _world(nodes, poses)
+    beams = [_beams(o, ends) for o, _, ends in world]
+    pairs = np.array([(a, b) for a in range(6) for b in range(6) if a != b], dtype=np.int64)
+    got = _kernels.free_space_counts(
+        np.concatenate([w[1] for w in world]), np.r_[0, np.cumsum([len(w[1]) for w in world])].astype(np.int64),
+        np.array([w[0] for w in world]), np.concatenate([b[0] for b in beams]), np.concatenate([b[1] for b in beams]),
+        np.r_[0, np.cumsum([len(b[0]) for b in beams])].astype(np.int64), np.array([b[2] for b in beams]), pairs,
+        0.05, VIOLATION_RANGE_SHARE)
+    want = [_violation(world[a][1], world[b][0], beams[b], 0.05) for a, b in pairs]
+    np.testing.assert_array_equal(got, np.array(want))
+    assert (got[:, 0] > 0).any() and (got[:, 1] > 0).all()
