@@ -166,8 +166,12 @@ class LocalSlam:
     def _typical_score(self) -> float | None:
         return float(np.median(self.recent_scores)) if len(self.recent_scores) >= MIN_SCORES_FOR_TRUST else None
 
-    def _recover(self, grid, scan, predicted, points):
-        """Branch-and-bound over the recovery windows around every distinct prediction; the best match."""
+    def _recover(self, grid, scan, predicted, points, limit):
+        """Branch-and-bound over the recovery windows around each distinct prediction, in the order the
+        motion model believes them (odometry, constant velocity, no motion): the first whose best
+        match scores ``limit`` (None: any) off the window's edge wins; without one, the best of all.
+        In a corridor or a row of equal doors several predictions find a good match at different
+        poses; the scene cannot tell them apart, so the likelier prediction decides."""
         hyps = [predicted]
         ex = self.extrapolator
         if ex.last_pose is not None:
@@ -182,7 +186,12 @@ class LocalSlam:
                 continue
             tried.append(h)
             m = wide._match(grid, h, points, 0.0, wide.linear_window, wide.angular_window, stack=stack)
-            if m is not None and (best is None or m.score > best.score):
+            if m is None:
+                continue
+            if not m.on_edge and (limit is None or m.score >= limit):
+                best = m
+                break
+            if best is None or m.score > best.score:
                 best = m
         if best is None:
             return None
@@ -217,7 +226,7 @@ class LocalSlam:
                 # not trusted: search wide around every prediction (Olson 2009's exhaustive search made
                 # cheap by branch-and-bound, Hess et al. 2016 Sec. V-C)
                 t_rec = time.perf_counter()
-                wide = self._recover(grid, scan, predicted, points)
+                wide = self._recover(grid, scan, predicted, points, limit)
                 timings["recovery"] = (time.perf_counter() - t_rec) * 1e3
                 self.num_recovery_searches += 1
                 # a recovered pose replaces the match only when it is trusted where the match was not:
