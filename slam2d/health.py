@@ -97,8 +97,9 @@ def free_space_violation(nodes, poses, resolution: float) -> np.ndarray:
     # the neighbours each node is compared with: the nearest of the same pass, then of other passes
     tree = cKDTree(origins)
     picks = []
-    for i, near in enumerate(tree.query_ball_point(origins, NEIGHBOUR_RADIUS)):
-        cand = np.array(sorted(c for c in near if c != i), dtype=np.int64)
+    for i, near in enumerate(tree.query_ball_point(origins, NEIGHBOUR_RADIUS, return_sorted=True)):
+        cand = np.asarray(near, dtype=np.int64)
+        cand = cand[cand != i]
         if len(cand) == 0:
             continue
         dist = np.hypot(*(origins[cand] - origins[i]).T)
