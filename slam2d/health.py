@@ -36,6 +36,8 @@ WARN_UNTRUSTED, BROKEN_UNTRUSTED = 0.01, 0.05
 NEIGHBOUR_RADIUS = 8.0
 #: ... the nearest this many from the same pass (path distance < 2 × the radius) and as many from other passes
 NEIGHBOURS_PER_PASS = 4
+#: nodes whose neighbour lists are asked for at once
+NEIGHBOUR_CHUNK = 256
 #: a hit violates free space when it lies 2 cells + this share of its range in front of the other's return
 VIOLATION_RANGE_SHARE = 0.01
 
@@ -97,8 +99,11 @@ def free_space_violation(nodes, poses, resolution: float) -> np.ndarray:
     # the neighbours each node is compared with: the nearest of the same pass, then of other passes
     tree = cKDTree(origins)
     picks = []
-    for i, near in enumerate(tree.query_ball_point(origins, NEIGHBOUR_RADIUS, return_sorted=True)):
-        cand = np.asarray(near, dtype=np.int64)
+    near = []
+    for i in range(len(origins)):
+        if i % NEIGHBOUR_CHUNK == 0:  # in chunks: all lists at once hold millions of ints on a dense log
+            near = tree.query_ball_point(origins[i:i + NEIGHBOUR_CHUNK], NEIGHBOUR_RADIUS, return_sorted=True)
+        cand = np.asarray(near[i % NEIGHBOUR_CHUNK], dtype=np.int64)
         cand = cand[cand != i]
         if len(cand) == 0:
             continue
