@@ -44,14 +44,14 @@ VIOLATION_RANGE_SHARE = 0.01
 
 def _world(nodes, poses):
     """Per node: sensor origin (2,), hits (N, 2) and every ray end (hits then misses), in the map frame."""
+    from slam2d.geometry import transform_points
+
     out = []
     for n in nodes:
-        q = np.asarray(poses[n.scan_index], dtype=np.float64)
-        c, s = np.cos(q[2]), np.sin(q[2])
-        rot = np.array([[c, -s], [s, c]])
-        o = q[:2] + rot @ np.asarray(n.origin, dtype=np.float64)
-        h = q[:2] + np.asarray(n.hits, dtype=np.float64).reshape(-1, 2) @ rot.T
-        m = q[:2] + np.asarray(n.misses, dtype=np.float64).reshape(-1, 2) @ rot.T
+        q = poses[n.scan_index]
+        o = transform_points(q, np.asarray(n.origin, dtype=np.float64).reshape(1, 2))[0]
+        h = transform_points(q, np.asarray(n.hits, dtype=np.float64).reshape(-1, 2))
+        m = transform_points(q, np.asarray(n.misses, dtype=np.float64).reshape(-1, 2))
         out.append((o, h, np.concatenate([h, m])))
     return out
 
