@@ -166,12 +166,30 @@ class LocalSlam:
     def _typical_score(self) -> float | None:
         return float(np.median(self.recent_scores)) if len(self.recent_scores) >= MIN_SCORES_FOR_TRUST else None
 
-    def _recover(self, grid, scan, predicted, points, limit):
+    def _recovery_floor(self, limit: float) -> float:
+        """Below this, no pose of the recovery window can score ``limit`` once the delta penalty is
+        taken off (the penalty's smallest factor is at the window's corner)."""
+        wide = self.wide_matcher
+        p = wide.penalty
+        v = p.translation_weight * math.sqrt(2.0) * wide.linear_window + p.rotation_weight * wide.angular_window
+        return float(np.nextafter(limit * math.exp(-v * v), -np.inf))
+
+    def _recover(self, grid, scan, predicted, points, limit, floor=0.0):
         """Branch-and-bound over the recovery windows around each distinct prediction, in the order the
         motion model believes them (odometry, constant velocity, no motion): the first whose best
         match scores ``limit`` (None: any) off the window's edge wins; without one, the best of all.
         In a corridor or a row of equal doors several predictions find a good match at different
-        poses; the scene cannot tell them apart, so the likelier prediction decides."""
+        poses; the scene cannot tell them apart, so the likelier prediction decides.
+
+        ``floor``: the caller takes a recovered match only if the fine search around its peak scores
+        ``limit``, and no pose of the recovery lattice scoring below ``_recovery_floor(limit)`` (its
+        score times the smallest delta penalty) can reach that. So branch-and-bound may cut every
+        subtree whose bound is not above the floor: the best match above it is the same one, and a
+        prediction whose best lies below it yields nothing instead of a match the caller would
+        reject. (The fine search may step two cells past the window's edge; a match found there was
+        on the edge, never trusted, and is the one case the floor can change.) Most recoveries
+        find nothing trusted, and without a floor the search cannot prune before it has met the
+        best pose of a weak scan."""
         hyps = [predicted]
         ex = self.extrapolator
         if ex.last_pose is not None:
@@ -185,7 +203,7 @@ class LocalSlam:
                    for t in tried):
                 continue
             tried.append(h)
-            m = wide._match(grid, h, points, 0.0, wide.linear_window, wide.angular_window, stack=stack)
+            m = wide._match(grid, h, points, floor, wide.linear_window, wide.angular_window, stack=stack)
             if m is None:
                 continue
             if not m.on_edge and (limit is None or m.score >= limit):
@@ -226,7 +244,9 @@ class LocalSlam:
                 # not trusted: search wide around every prediction (Olson 2009's exhaustive search made
                 # cheap by branch-and-bound, Hess et al. 2016 Sec. V-C)
                 t_rec = time.perf_counter()
-                wide = self._recover(grid, scan, predicted, points, limit)
+                # with a match in hand, a recovered one is only taken when trusted (below)
+                floor = 0.0 if m is None or limit is None else self._recovery_floor(limit)
+                wide = self._recover(grid, scan, predicted, points, limit, floor)
                 timings["recovery"] = (time.perf_counter() - t_rec) * 1e3
                 self.num_recovery_searches += 1
                 # a recovered pose replaces the match only when it is trusted where the match was not:

@@ -143,3 +143,57 @@ def test_recovery_prefers_the_odometry_where_the_scene_repeats(monkeypatch):
     for j in (k, k + 2):
         dt, dr = _rel_error(poses[k - 1], poses[j], scans[k - 1].ground_truth, scans[j].ground_truth)
         assert dt < 0.2 and dr < 1.0, (j, dt, dr)
+
+
+def test_recovery_floor_changes_no_result(monkeypatch):
+    """The recovery search prunes below the trust limit (less the largest delta penalty): it must
+    find exactly what the unpruned search finds wherever that can be taken. Whole local runs with
+    recoveries (an injected 30° heading error, and a 2 s gap without odometry) give identical
+    poses and counts with and without the floor."""
+    scans = _bundled_scans(330)
+    k = 200
+    jump = np.array([0.0, 0.0, math.radians(30.0)])
+    for s in scans[k:260]:
+        s.odom_pose = compose(compose(scans[k - 1].odom_pose, jump), between(scans[k - 1].odom_pose, s.odom_pose))
+    for s in scans[260:]:
+        s.odom_pose = None
+    t_gap = scans[290].timestamp
+    scans = [s for s in scans if not (t_gap <= s.timestamp < t_gap + 2.0)]
+    floored, with_floor = _run(scans)
+    assert floored.num_recovery_searches >= 2 and floored.num_recovered >= 1
+    seen = []
+    real = LocalSlam._recovery_floor
+    monkeypatch.setattr(LocalSlam, "_recovery_floor", lambda self, limit: seen.append(real(self, limit)) or 0.0)
+    plain, without = _run(scans)
+    assert seen and min(seen) > 0.3  # the floor was live (it prunes), yet nothing changed:
+    np.testing.assert_array_equal(np.array(with_floor), np.array(without))
+    assert floored.summary() == plain.summary()
+
+
+def test_recovery_floor_keeps_a_match_that_only_the_penalty_pushes_below_the_limit():
+    """A scan predicted 1.5 m and 35° off its true pose: the recovery finds the true pose, whose score
+    times the delta penalty lies below the limit while the score itself reaches it. The floored search
+    must still find it (a floor at the limit itself would prune it away)."""
+    scans = _bundled_scans(120)
+    tracker, poses = _run(scans[:100])
+    grid = tracker.submaps.matching_submap.match_grid()
+    from slam2d.range_data import range_data, voxel_filter
+
+    scan = scans[99]
+    cfg = tracker.cfg
+    points = voxel_filter(range_data(scan, cfg.range_filter).hits, cfg.range_filter.voxel_filter_size)
+    true = np.array(poses[99])
+    predicted = compose(true, np.array([1.5, -0.4, math.radians(35.0)]))
+    tracker.extrapolator.last_pose = None  # the odometry prediction is the only one searched
+    found = tracker._recover(grid, scan, predicted, points, None)
+    assert found is not None and math.hypot(*(found.pose[:2] - true[:2])) < 0.1
+    wide = tracker.wide_matcher
+    direct = wide._match(grid, predicted, points, 0.0, wide.linear_window, wide.angular_window)
+    assert direct.score < 0.98 * found.score  # the penalty costs this pose a few per cent
+    limit = 0.5 * (direct.score + found.score)  # so the limit lies between the two
+    floored = tracker._recover(grid, scan, predicted, points, limit, tracker._recovery_floor(limit))
+    assert floored is not None
+    np.testing.assert_array_equal(floored.pose, found.pose)
+    assert floored.score == found.score >= limit
+    np.testing.assert_array_equal(tracker._recover(grid, scan, predicted, points, limit).pose, found.pose)
+    assert tracker._recover(grid, scan, predicted, points, limit, np.nextafter(limit, -1)) is None
