@@ -9,7 +9,6 @@ import argparse
 import json
 import logging
 import sys
-import time
 from pathlib import Path
 
 from slam2d.errors import Slam2dError, UsageError
@@ -19,6 +18,7 @@ log = logging.getLogger("slam2d")
 EXAMPLES = """examples:
   slam2d run ../shared/datasets/intel/intel.clf.bz2 --out runs/intel
   slam2d run data/sim_office.mcap --out runs/sim --odometry-only
+  slam2d run ../shared/datasets/aces/aces.clf.bz2 --out runs/aces --rate 5
   slam2d info ../shared/datasets/fr079/fr079.clf.bz2 --json
   slam2d convert ../shared/datasets/aces/aces.clf.bz2 aces.mcap
   slam2d simulate data/sim_office.mcap --seed 7
@@ -53,6 +53,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rerun", metavar="RRD", default=None, help="write a Rerun recording of the whole run to this .rrd")
     p.add_argument("--viewer", action="store_true", help="stream the run live to a spawned Rerun viewer")
     p.add_argument("--mcap", action="store_true", help="also write DIR/results.mcap (scans, poses, TF, map; ROS 2)")
+    p.add_argument("--rate", type=float, default=None, metavar="R",
+                   help="replay the input by its timestamps at R× real time (1 = live) and report the worst lag "
+                        "behind it (summary.json: realtime)")
 
     p = sub.add_parser("info", help="describe a log: scans, duration, beams, ranges, odometry",
                        epilog="example:\n  slam2d info ../shared/datasets/intel/intel.clf.bz2 --json",
@@ -108,30 +111,20 @@ def _limited(source, n):
 
 def cmd_run(args) -> int:
     from slam2d.config import load_config
-    from slam2d.mapper import Mapper, OdometryTracker, build_map
-    from slam2d.output import OutputDir, config_text
-    from slam2d.summary import run_summary
+    from slam2d.output import OutputDir
+    from slam2d.slam import Slam
 
-    t0 = time.perf_counter()
     cfg = load_config(args.config)
     if args.max_scans is not None and args.max_scans <= 0:
         raise UsageError("--max-scans must be positive")
+    if args.rate is not None and not args.rate > 0:
+        raise UsageError("--rate must be positive")
     src = _source(args)
     total = src.num_scans() if hasattr(src, "num_scans") else None
     if args.max_scans:
         total = min(total, args.max_scans) if total else args.max_scans
-    out = OutputDir(args.out)
-    if args.odometry_only:
-        tracker, mode = OdometryTracker(cfg, args.input), "odometry"
-    else:
-        from slam2d.frontend import LocalSlam
-
-        tracker, mode = LocalSlam(cfg, loop_closure=not args.no_loop_closure and cfg.loop_closure.enabled), "local"
-    global_slam = None
-    if not args.odometry_only and not args.no_loop_closure and cfg.loop_closure.enabled:
-        from slam2d.backend.global_slam import GlobalSlam
-
-        global_slam, mode = GlobalSlam(cfg), "global"
+    OutputDir(args.out)  # a folder that cannot be written fails now, not after the run
+    mode = "odometry" if args.odometry_only else "local" if args.no_loop_closure else "global"
     viz = None
     rrd_tmp = None
     if args.rerun or args.viewer:
@@ -142,77 +135,46 @@ def cmd_run(args) -> int:
         rrd_tmp = f"{args.rerun}.partial" if args.rerun else None
         viz = RerunObserver(path=rrd_tmp, spawn=args.viewer)
     try:
+        slam = Slam(cfg, mode=mode, observer=viz, source_name=args.input)
+        slam.start({"input": args.input})
+        pacer = None
+        if args.rate is not None:
+            from slam2d.pacing import Pacer
+
+            pacer = Pacer(args.rate)
         with _progress(total, args.no_progress, "slam2d") as bar:
-            mapper = Mapper(cfg, tracker, viz, global_slam)
-            result = mapper.run(_limited(src, args.max_scans), progress=bar, info={"input": args.input, "mode": mode})
-        t_map = time.perf_counter()
-        grid = result.map
-        if grid is None:
-            node_poses = {n.scan_index: result.poses[n.scan_index] for n in result.nodes} if global_slam else None
-            grid = build_map(cfg, result.nodes, node_poses)
-        wall_map = time.perf_counter() - t_map + result.timings.pop("map_build", {}).get("total_s", 0.0)
-        out.write_trajectory("trajectory.txt", result.stamps, result.poses)
-        out.write_map(grid, cfg)
-        out.write_text("config.yaml", config_text(cfg))
-        if global_slam is not None:
-            out.write_text("constraints.jsonl", "".join(json.dumps(r) + "\n" for r in global_slam.records))
-        if args.mcap:
-            from slam2d.grid.map_export import occupancy_image
-            from slam2d.io.results_mcap import write_results_mcap
-
-            img, ox, oy = occupancy_image(grid, cfg.map.occupied_thresh, cfg.map.free_thresh)
-            write_results_mcap(out.staged("results.mcap"), _limited(src, args.max_scans), result.poses,
-                               img, grid.resolution, (ox, oy))
+            for scan in _limited(src, args.max_scans):
+                if pacer is not None:
+                    pacer.wait(scan.timestamp)
+                slam.add_scan(scan)
+                if pacer is not None:
+                    pacer.done()
+                bar.update(1)
+        result = slam.finish()
+        if pacer is not None:
+            result.summary["realtime"] = pacer.report()
+        result.save(args.out, mcap_scans=_limited(src, args.max_scans) if args.mcap else None)
         if viz is not None:
-            viz.log_final(len(result.stamps) - 1, grid, result.poses, *_graph(tracker, result, global_slam),
-                          {"scans": len(result.stamps), "nodes": len(result.nodes)})
             viz.close()
-        wall = time.perf_counter() - t0
-        summary = run_summary(args.input, mode, result, wall, wall_map, tracker)
-        if global_slam is not None:
-            summary.update(global_slam.summary())
-        from slam2d.health import assess
+            if rrd_tmp:
+                import os
 
-        t_h = time.perf_counter()
-        summary["health"] = assess(cfg, result.nodes, result.poses, summary.get("local_slam"), summary.get("loop_closure"))
-        summary["timings"]["health_s"] = round(time.perf_counter() - t_h, 3)
-        out.write_json("summary.json", summary)
-        out.commit()
-        if rrd_tmp:
-            import os
-
-            os.replace(rrd_tmp, args.rerun)
+                os.replace(rrd_tmp, args.rerun)
     except BaseException:
-        out.abort()
         if rrd_tmp:
             Path(rrd_tmp).unlink(missing_ok=True)
         raise
-    h = summary["health"]
+    h = result.summary["health"]
     if h["status"] != "OK":
         print(f"slam2d: warning: map health {h['status']}: " + "; ".join(h["reasons"]), file=sys.stderr)
+    rt = result.summary.get("realtime")
+    if rt is not None:
+        print(f"realtime x{rt['rate']:g}: worst lag behind the data {rt['worst_lag_s']:.3f} s "
+              f"(p99 {rt['p99_lag_s']:.3f} s, {rt['scans_late_over_1s']} scans over 1 s late)")
+    wall = result.summary["wall_time_s"]
     log.info("wrote %s (%d scans, %.1f s)", args.out, len(result.stamps), wall)
     print(f"{len(result.stamps)} scans -> {args.out} in {wall:.1f} s")
     return 0
-
-
-def _graph(tracker, result, global_slam=None):
-    """Node positions, node-in-submap segments, accepted and rejected loop constraints (final poses)."""
-    import numpy as np
-
-    pose_of = {n.scan_index: result.poses[n.scan_index] for n in result.nodes}
-    nodes = np.array([p[:2] for p in pose_of.values()]).reshape(-1, 2)
-    segs, loops, rejected = [], [], []
-    for sub in getattr(tracker, "all_submaps", lambda: [])():
-        anchor = sub.node_indices[0] if sub.node_indices else None
-        for i in sub.node_indices:
-            if i in pose_of and anchor in pose_of:
-                segs.append((pose_of[i][:2], pose_of[anchor][:2]))
-    for r in (global_slam.records if global_slam else []):
-        a, b = pose_of.get(r["from_scan"]), pose_of.get(r["to_scan"])
-        if a is not None and b is not None:
-            (loops if r.get("in_final_graph") else rejected).append((a[:2], b[:2]))
-    return (nodes, np.array(segs).reshape(-1, 2, 2), np.array(loops).reshape(-1, 2, 2),
-            np.array(rejected).reshape(-1, 2, 2))
 
 
 def cmd_view(args) -> int:

@@ -27,7 +27,7 @@ import numpy as np
 from slam2d.config import SlamConfig
 from slam2d.geometry import between, compose
 from slam2d.grid.submap import ActiveSubmaps
-from slam2d.mapper import MatchingResult
+from slam2d.types import MatchingResult
 from slam2d.matching.real_time import RealTimeCorrelativeScanMatcher
 from slam2d.matching.refine import refine
 from slam2d.matching.search import angular_step

@@ -19,4 +19,5 @@ class Observer:
 
     def on_optimized(self, global_slam) -> None: ...
 
-    def on_finish(self, mapper) -> None: ...
+    def on_finish(self, result) -> None:
+        """The run is finished: ``result`` is the ``slam.SlamResult`` (final poses, map, graph, summary)."""

@@ -86,24 +86,23 @@ def peak_rss_mb() -> float:
     return round(kb / 1024 if sys.platform != "darwin" else kb / 1024 / 1024, 1)
 
 
-def run_summary(input_path, mode, result, wall_s, map_s, tracker) -> dict:
-    duration = float(result.times.max() - result.times.min()) if len(result.times) > 1 else 0.0
+def run_summary(input_path, mode, times: np.ndarray, counts: dict, timings: dict, map_s: float, tracker) -> dict:
+    """The head of ``summary.json``; ``Slam.finish`` adds wall time, global SLAM and health."""
+    duration = float(times.max() - times.min()) if len(times) > 1 else 0.0
     s = {
         "slam2d_version": _version(),
         "python": platform.python_version(),
         "input": str(input_path),
         "mode": mode,
-        "scans": len(result.stamps),
+        "scans": int(len(times)),
         "duration_s": round(duration, 6),
-        "wall_time_s": round(wall_s, 3),
-        "real_time_factor": round(duration / wall_s, 3) if wall_s > 0 else None,
+        "wall_time_s": None,
+        "real_time_factor": None,
         "peak_rss_mb": peak_rss_mb(),
-        "counts": result.counts,
-        "timings": {**result.timings, "map_build_s": round(map_s, 3)},
+        "counts": counts,
+        "timings": {**timings, "map_build_s": round(map_s, 3)},
     }
     extra = getattr(tracker, "summary", None)
     if callable(extra):
         s.update(extra())
-    if getattr(result, "ground_truth_ate", None) is not None:
-        s["ate_vs_ground_truth"] = result.ground_truth_ate
     return s

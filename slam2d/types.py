@@ -1,9 +1,15 @@
 """Records that flow through the pipeline."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
+from typing import TYPE_CHECKING
+
 import numpy as np
+
+if TYPE_CHECKING:
+    from slam2d.range_data import RangeData
 
 
 @dataclass
@@ -48,3 +54,80 @@ class Scan:
         r = self.ranges[mask].astype(float)
         a = self.angles[mask]
         return np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
+
+    @classmethod
+    def from_ranges(cls, time: float, ranges, angle_min: float, angle_increment: float, range_max: float,
+                    odom_pose=None, range_min: float = 0.0, laser_offset=None, intensities=None, **fields) -> "Scan":
+        """A scan from a range array as ``sensor_msgs/LaserScan`` carries it (REP 117): a reading is a
+        hit when it is finite, positive and within [range_min, range_max]; +inf or above range_max is a
+        no-return (free space up to ``range_filter.missing_data_ray_length``, never a hit); NaN and
+        readings below range_min are neither. ``odom_pose``: the robot's odometry (x, y, θ) at
+        ``time``, if any; ``laser_offset``: the laser's pose in the robot frame; ``fields``: any
+        other ``Scan`` field (``index``, ``timestamp_text``, ``ground_truth``)."""
+        r = np.asarray(ranges, dtype=np.float32).reshape(-1)
+        with np.errstate(invalid="ignore"):
+            no_return = np.isposinf(r) | (r > range_max)
+            valid = np.isfinite(r) & (r >= range_min) & (r <= range_max) & (r > 0)
+        return cls(timestamp=float(time), ranges=r, angle_min=float(angle_min), angle_increment=float(angle_increment),
+                   range_min=float(range_min), range_max=float(range_max), valid=valid, no_return=no_return,
+                   intensities=None if intensities is None else np.asarray(intensities, dtype=np.float32),
+                   odom_pose=None if odom_pose is None else np.asarray(odom_pose, dtype=float).reshape(3),
+                   laser_offset=np.zeros(3) if laser_offset is None else np.asarray(laser_offset, dtype=float).reshape(3),
+                   **fields)
+
+
+@dataclass
+class MatchingResult:
+    """What local SLAM (or odometry) made of one scan."""
+
+    time: float
+    local_pose: np.ndarray
+    range_data: RangeData  # tracking frame
+    inserted: bool
+    score: float | None = None
+    timings: dict = field(default_factory=dict)
+    active_submap: object = None          # the submap this scan was matched against (local SLAM)
+    finished_submaps: list = field(default_factory=list)  # submaps this insertion finished
+    inserted_into: list = field(default_factory=list)     # (submap index, submap local pose) it went into
+    match: object = None                  # the correlative match of an inserted scan
+    points: np.ndarray | None = None      # the filtered points that were matched (tracking frame)
+    quality: str = "unmatched"            # trusted | weak | forced | untrusted | unmatched
+
+    @property
+    def covariance(self) -> np.ndarray | None:
+        """Covariance of the local match (Olson 2009, Sec. IV), computed on demand: only global SLAM uses it."""
+        return None if self.match is None else self.match.covariance
+
+
+@dataclass
+class Node:
+    """A scan kept by the motion filter: its local pose and range data (tracking frame, float32)."""
+
+    scan_index: int
+    time: float
+    local_pose: np.ndarray
+    hits: np.ndarray
+    misses: np.ndarray
+    origin: np.ndarray
+
+
+@dataclass
+class Estimate:
+    """What ``Slam.add_scan`` knows about a scan the moment it returns.
+
+    ``local_pose``: local SLAM's pose (the odometry's with ``mode="odometry"``), continuous but
+    drifting; ``global_pose``: the best estimate in the map frame now, i.e. the local pose moved by
+    the pose graph's latest correction (equal to the local pose without global SLAM). Later loop
+    closures move it; ``Slam.finish`` gives every scan's final pose. Poses are (x, y, θ), θ in (−π, π].
+    """
+
+    index: int
+    time: float
+    local_pose: np.ndarray
+    global_pose: np.ndarray
+    inserted: bool
+    quality: str
+
+    @property
+    def heading_deg(self) -> float:
+        return math.degrees(float(self.global_pose[2]))

@@ -15,12 +15,15 @@ def test_submap_size_depends_on_loop_closure():
 
 def test_local_only_run_finishes_submaps_at_the_local_only_size(tmp_path):
     from slam2d.io.source import open_source
-    from slam2d.mapper import Mapper
     from conftest import BUNDLED
 
     cfg = config_from_dict({"submaps": {"num_range_data": 10, "num_range_data_without_loop_closure": 25}})
-    tracker = LocalSlam(cfg, loop_closure=False)
-    Mapper(cfg, tracker).run(open_source(BUNDLED))
+    from slam2d.slam import Slam
+
+    slam = Slam(cfg, mode="local")
+    slam.run(open_source(BUNDLED))
+    tracker = slam.tracker
+    assert isinstance(tracker, LocalSlam) and tracker.submaps.num_range_data == 25
     assert tracker.finished_submaps, "the bundled run should finish submaps"
     # a submap starts every 25 insertions and is finished after 2 × 25
     assert all(s.num_range_data == 50 for s in tracker.finished_submaps)

@@ -10,7 +10,7 @@ from slam2d.frontend import LocalSlam
 from slam2d.geometry import between, compose
 from slam2d.backend.global_slam import GlobalSlam
 from slam2d.io.mcap import McapLog
-from slam2d.mapper import Mapper
+from slam2d.slam import Slam
 
 from conftest import BUNDLED
 
@@ -56,8 +56,9 @@ def test_pose_graph_closes_a_loop_and_drops_a_false_constraint():
 def sim_run():
     cfg = SlamConfig()
     scans = list(McapLog(BUNDLED))
-    gs = GlobalSlam(cfg)
-    res = Mapper(cfg, LocalSlam(cfg), None, gs).run(scans)
+    slam = Slam(cfg)
+    gs = slam.global_slam
+    res = slam.run(scans)
     gt = np.array([s.ground_truth for s in scans])
     return res, gs, gt
 

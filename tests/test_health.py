@@ -10,14 +10,13 @@ from slam2d.health import assess
 
 def _bundled_local_run():
     from conftest import BUNDLED
-    from slam2d.frontend import LocalSlam
     from slam2d.io.source import open_source
-    from slam2d.mapper import Mapper
+    from slam2d.slam import Slam
 
     cfg = config_from_dict({})
-    tracker = LocalSlam(cfg, loop_closure=False)
-    result = Mapper(cfg, tracker).run(open_source(BUNDLED))
-    return cfg, tracker, result
+    slam = Slam(cfg, mode="local")
+    result = slam.run(open_source(BUNDLED))
+    return cfg, slam.tracker, result
 
 
 def test_health_passes_a_good_map_and_flags_a_broken_one():
@@ -45,7 +44,7 @@ def test_health_flags_untrusted_matches():
 def _box_scan(pose, half=(5.0, 3.0), person=None, beams=360):
     """Hits of a 360° scan taken at ``pose`` inside a box room centred on the origin (tracking frame),
     with an optional round obstacle (x, y, radius) that only this scan sees."""
-    from slam2d.mapper import Node
+    from slam2d.types import Node
 
     x, y, th = pose
     hits = []

@@ -5,16 +5,14 @@ from types import SimpleNamespace
 import numpy as np
 
 from slam2d.backend.consistency import ConsistencyParams, inconsistent, pair_matrix
-from slam2d.backend.global_slam import GlobalSlam
 from slam2d.backend.loop_closure import LoopMatch, SubmapMatcher
 from slam2d.config import SlamConfig
 from slam2d.eval.loops import agrees
-from slam2d.frontend import LocalSlam
 from slam2d.geometry import between, compose
 from slam2d.grid.probability_grid import ProbabilityGrid
 from slam2d.io.mcap import McapLog
 from slam2d.io.simulator import floor_plan, raycast
-from slam2d.mapper import Mapper
+from slam2d.slam import Slam
 
 from conftest import BUNDLED
 
@@ -90,7 +88,8 @@ def test_consistency_check_rejects_an_injected_false_loop_on_the_simulator():
     cfg.loop_closure.gnc_final = False
     scans = list(McapLog(BUNDLED))
     gt = np.array([s.ground_truth for s in scans])
-    gs = GlobalSlam(cfg)
+    slam = Slam(cfg)
+    gs = slam.global_slam
     search = gs._search
     injected = []
 
@@ -106,7 +105,7 @@ def test_consistency_check_rejects_an_injected_false_loop_on_the_simulator():
             injected.append(false)
 
     gs._search = search_and_inject
-    Mapper(cfg, LocalSlam(cfg), None, gs).run(scans)
+    slam.run(scans)
     assert injected, "no true loop to copy"
     false = injected[0]
     assert agrees(gt, false, 0.3, 2.0) is False

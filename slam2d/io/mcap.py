@@ -170,17 +170,11 @@ class McapLog:
                 with np.errstate(invalid="ignore"):
                     if np.any(r < 0):
                         raise InputError(self.path, "negative range reading", record=k)
-                    no_ret = np.isposinf(r) | (r > m.range_max)
-                    valid = np.isfinite(r) & (r >= m.range_min) & (r <= m.range_max) & (r > 0)
                 inten = np.asarray(m.intensities, dtype=np.float32) if len(m.intensities) == r.size else None
-                yield Scan(
-                    timestamp=t, timestamp_text=text, ranges=r, angle_min=float(m.angle_min),
-                    angle_increment=float(m.angle_increment), range_min=float(m.range_min),
-                    range_max=float(m.range_max), valid=valid, no_return=no_ret, index=k, intensities=inten,
-                    odom_pose=odom.at(t) if odom else None,
-                    laser_offset=mount if mount is not None else np.zeros(3),
-                    ground_truth=gt.at(t) if gt else None,
-                )
+                yield Scan.from_ranges(t, r, m.angle_min, m.angle_increment, m.range_max,
+                                       odom_pose=odom.at(t) if odom else None, range_min=m.range_min,
+                                       laser_offset=mount, intensities=inten, timestamp_text=text, index=k,
+                                       ground_truth=gt.at(t) if gt else None)
 
 
 # ------------------------------------------------------------------ writing

@@ -237,8 +237,12 @@ class RerunObserver(Observer):
                 rr.log(f"/world/graph/{name}", rr.LineStrips2D(list(np.asarray(segs, np.float32)), colors=[color],
                                                                  radii=[0.01]))
 
-    def on_finish(self, mapper) -> None:
+    def on_finish(self, result) -> None:
+        """The final map, trajectory and pose graph at the last scan."""
         self.flush()
+        g = result.graph
+        self.log_final(len(result.stamps) - 1, result.map, result.poses, g["nodes"], g["node_in_submap"], g["loops"],
+                       g["rejected"], {"scans": len(result.stamps), "nodes": len(result.nodes)})
 
     def log_final(self, seq, grid, poses, nodes, node_in_submap, loops, rejected, stats: dict) -> None:
         rr.set_time("scan", sequence=seq)

@@ -1,0 +1,296 @@
+"""The library API: feed scans one at a time, get the best pose now; finish for the final map.
+
+The pipeline of Hess et al. 2016 (Sec. III): every scan goes through local SLAM
+(``frontend.LocalSlam``, Sec. IV); scans that pass the motion filter become nodes of the
+pose graph (``backend.global_slam.GlobalSlam``, Sec. V), which closes loops against
+finished submaps as they come. ``finish`` runs the final optimization, builds the map
+from the optimized nodes (``grid.map_builder``), refines every scan once in it
+(``backend.final_refinement``) and assesses the run (``health``). ``slam2d run`` is a
+thin caller of this module::
+
+    import slam2d
+    slam = slam2d.Slam()
+    for scan in slam2d.open_source("log.clf.bz2"):
+        est = slam.add_scan(scan)       # est.local_pose, est.global_pose: (x, y, θ) now
+    result = slam.finish()              # result.poses: (N, 3), result.map, result.summary
+    result.save("runs/x")               # the files ``slam2d run`` writes
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from slam2d.config import SlamConfig, load_config
+from slam2d.errors import InputError, UsageError
+from slam2d.geometry import between, compose
+from slam2d.grid.map_builder import build_map
+from slam2d.grid.probability_grid import ProbabilityGrid
+from slam2d.observer import Observer
+from slam2d.types import Estimate, Node, Scan
+
+MODES = ("global", "local", "odometry")
+
+
+@dataclass
+class SlamResult:
+    """A finished run: the final pose of every scan, the map, and what the run reports about itself."""
+
+    config: SlamConfig
+    stamps: list[str]          # every scan's timestamp as the source wrote it
+    times: np.ndarray          # (N,) seconds
+    poses: np.ndarray          # (N, 3) final pose of every scan, in input order
+    map: ProbabilityGrid
+    summary: dict              # what summary.json holds (health included)
+    nodes: list[Node]
+    constraints: list[dict] = field(default_factory=list)  # one record per loop candidate (constraints.jsonl)
+    graph: dict = field(default_factory=dict)  # nodes, node_in_submap, loops, rejected (final poses) for viewers
+
+    def save(self, out_dir, mcap_scans=None) -> Path:
+        """Write ``trajectory.txt`` (TUM), ``map.pgm`` + ``map.yaml`` + ``map.png``, ``config.yaml``,
+        ``constraints.jsonl`` (global SLAM) and ``summary.json`` into ``out_dir``; with
+        ``mcap_scans`` (the run's scans again, e.g. ``open_source(path)``) also ``results.mcap``.
+        Files appear only when all of them are complete."""
+        from slam2d.config import dump_config
+        from slam2d.output import OutputDir
+
+        out = OutputDir(out_dir)
+        try:
+            out.write_trajectory("trajectory.txt", self.stamps, self.poses)
+            out.write_map(self.map, self.config)
+            out.write_text("config.yaml", dump_config(self.config))
+            if self.summary.get("mode") == "global":
+                out.write_text("constraints.jsonl", "".join(json.dumps(r) + "\n" for r in self.constraints))
+            if mcap_scans is not None:
+                from slam2d.grid.map_export import occupancy_image
+                from slam2d.io.results_mcap import write_results_mcap
+
+                img, ox, oy = occupancy_image(self.map, self.config.map.occupied_thresh, self.config.map.free_thresh)
+                write_results_mcap(out.staged("results.mcap"), mcap_scans, self.poses, img, self.map.resolution, (ox, oy))
+            out.write_json("summary.json", self.summary)
+            out.commit()
+        except BaseException:
+            out.abort()
+            raise
+        return out.path
+
+
+class Slam:
+    """Online 2D SLAM of one robot with one laser.
+
+    ``mode``: ``"global"`` (local SLAM and loop closure; local SLAM only when the config's
+    ``loop_closure.enabled`` is false), ``"local"`` (no pose graph) or ``"odometry"`` (poses are
+    the wheel odometry; scans only build the map). ``observer`` hears about every step (Rerun,
+    progress): see ``slam2d.observer``. ``source_name`` names the input in error messages.
+    """
+
+    def __init__(self, config: SlamConfig | None = None, *, mode: str = "global", observer: Observer | None = None,
+                 source_name: str = "input"):
+        if mode not in MODES:
+            raise UsageError(f"mode must be one of {', '.join(MODES)}, not {mode!r}")
+        self.config = cfg = config if config is not None else SlamConfig()
+        if mode == "global" and not cfg.loop_closure.enabled:
+            mode = "local"
+        self.mode = mode
+        self.source_name = str(source_name)
+        self.observer = observer or Observer()
+        if mode == "odometry":
+            from slam2d.odometry import OdometryTracker
+
+            self.tracker = OdometryTracker(cfg, self.source_name)
+        else:
+            from slam2d.frontend import LocalSlam
+
+            self.tracker = LocalSlam(cfg, loop_closure=mode == "global")
+        self.global_slam = None
+        if mode == "global":
+            from slam2d.backend.global_slam import GlobalSlam
+
+            self.global_slam = GlobalSlam(cfg, self.observer)
+        self._stamps: list[str] = []
+        self._times: list[float] = []
+        self._local: list[np.ndarray] = []
+        self._ground_truth: list = []
+        self.nodes: list[Node] = []
+        self._keep_points = self.global_slam is not None and cfg.final_refinement.enabled
+        self._points: list[np.ndarray | None] = []
+        self._stage_ms: dict[str, list[float]] = {}
+        self._counts = {"scans": 0, "nodes": 0, "invalid_readings": 0, "no_return_readings": 0, "readings": 0,
+                        "timestamp_reversals": 0, "beams_min": None, "beams_max": None}
+        self._t_start = None
+        self._finished = False
+
+    @classmethod
+    def from_yaml(cls, path, **kwargs) -> "Slam":
+        """``Slam(load_config(path), ...)``: a YAML config as ``slam2d dump-config`` writes it."""
+        return cls(load_config(path), **kwargs)
+
+    @property
+    def num_scans(self) -> int:
+        return len(self._times)
+
+    def start(self, info: dict | None = None) -> None:
+        """Tell observers a run begins (``add_scan`` does it on the first scan otherwise)."""
+        if self._t_start is None:
+            self._t_start = time.perf_counter()
+            self.observer.on_start({"mode": self.mode, **(info or {})})
+
+    def add_scan(self, scan: Scan) -> Estimate:
+        """Process one scan (in time order) and return its pose estimate as of now."""
+        if self._finished:
+            raise UsageError("add_scan after finish: start a new Slam")
+        self.start()
+        i = len(self._times)
+        if scan.index != i:  # node ids are input positions
+            scan = dataclasses.replace(scan, index=i)
+        t0 = time.perf_counter()
+        res = self.tracker.add_scan(scan)
+        self._stage("frontend", (time.perf_counter() - t0) * 1e3)
+        for k, v in res.timings.items():
+            self._stage(k, v)
+        self._count(scan)
+        self._stamps.append(scan.timestamp_text or f"{scan.timestamp:.9f}")
+        self._times.append(scan.timestamp)
+        self._ground_truth.append(scan.ground_truth)
+        self._local.append(np.asarray(res.local_pose, dtype=float))
+        if self._keep_points:
+            self._points.append(None if res.points is None else res.points.astype(np.float32))
+        gs = self.global_slam
+        if gs is not None:
+            t1 = time.perf_counter()
+            if res.inserted:
+                gs.add_node(scan, res.local_pose, res.range_data.hits, res.covariance, res.inserted_into)
+            for sub in res.finished_submaps:
+                gs.add_finished_submap(sub)
+            self._stage("global", (time.perf_counter() - t1) * 1e3)
+        if res.inserted:
+            rd = res.range_data
+            self.nodes.append(Node(i, scan.timestamp, np.asarray(res.local_pose, dtype=float), rd.hits.astype(np.float32),
+                                   rd.misses.astype(np.float32), rd.origin.astype(np.float32)))
+        self.observer.on_scan(scan, res)
+        local = self._local[-1]
+        glob = local.copy() if gs is None else compose(gs.correction, local)
+        return Estimate(i, scan.timestamp, local.copy(), glob, bool(res.inserted), res.quality)
+
+    def run(self, scans) -> SlamResult:
+        """``add_scan`` for every scan, then ``finish``."""
+        for scan in scans:
+            self.add_scan(scan)
+        return self.finish()
+
+    def finish(self) -> SlamResult:
+        """Final optimization, map, final refinement and health; the Slam takes no scans after this."""
+        if self._finished:
+            raise UsageError("finish called twice")
+        if not self._times:
+            raise InputError(self.source_name, "no scans")
+        self._finished = True
+        cfg = self.config
+        self._counts["nodes"] = len(self.nodes)
+        poses = np.array(self._local, dtype=float).reshape(-1, 3)
+        gs = self.global_slam
+        if gs is not None:
+            t1 = time.perf_counter()
+            poses = globalize(poses, gs.finish())
+            self._stage_ms["final_optimization"] = [(time.perf_counter() - t1) * 1e3]
+        t_map = time.perf_counter()
+        node_poses = {n.scan_index: poses[n.scan_index] for n in self.nodes} if gs is not None else None
+        grid = build_map(cfg, self.nodes, node_poses)
+        map_s = time.perf_counter() - t_map
+        if self._keep_points:
+            from slam2d.backend.final_refinement import refine_trajectory
+
+            t1 = time.perf_counter()
+            fr = cfg.final_refinement
+            poses = refine_trajectory(grid, poses, self._points, fr.translation_weight, fr.rotation_weight,
+                                      cfg.refine.max_iterations, cfg.refine.occupied_space_weight)
+            self._points = []
+            self._stage_ms["final_refinement"] = [(time.perf_counter() - t1) * 1e3]
+        summary = self._summary(poses, map_s)
+        result = SlamResult(cfg, self._stamps, np.array(self._times), poses, grid, summary, self.nodes,
+                            list(gs.records) if gs is not None else [], graph_of(self.tracker, self.nodes, poses, gs))
+        self.observer.on_finish(result)
+        return result
+
+    # ---- bookkeeping
+    def _stage(self, name, ms):
+        self._stage_ms.setdefault(name, []).append(ms)
+
+    def _count(self, scan):
+        c = self._counts
+        n = scan.num_beams
+        c["scans"] += 1
+        c["readings"] += n
+        c["invalid_readings"] += int(n - np.count_nonzero(scan.valid))
+        if scan.no_return is not None:
+            c["no_return_readings"] += int(np.count_nonzero(scan.no_return))
+        c["beams_min"] = n if c["beams_min"] is None else min(c["beams_min"], n)
+        c["beams_max"] = n if c["beams_max"] is None else max(c["beams_max"], n)
+        if self._times and scan.timestamp < self._times[-1]:
+            c["timestamp_reversals"] += 1
+
+    def _summary(self, poses, map_s) -> dict:
+        from slam2d.health import assess
+        from slam2d.summary import run_summary
+
+        timings = {k: _percentiles(v) for k, v in self._stage_ms.items()}
+        times = np.array(self._times)
+        s = run_summary(self.source_name, self.mode, times, self._counts, timings, map_s, self.tracker)
+        gt = self._ground_truth
+        if gt and all(g is not None for g in gt):
+            from slam2d.eval.ate import ate
+
+            s["ate_vs_ground_truth"] = ate(poses, np.array(gt, dtype=float))
+        if self.global_slam is not None:
+            s.update(self.global_slam.summary())
+        t_h = time.perf_counter()
+        s["health"] = assess(self.config, self.nodes, poses, s.get("local_slam"), s.get("loop_closure"))
+        s["timings"]["health_s"] = round(time.perf_counter() - t_h, 3)
+        wall = time.perf_counter() - self._t_start
+        s["wall_time_s"] = round(wall, 3)
+        duration = s["duration_s"]
+        s["real_time_factor"] = round(duration / wall, 3) if wall > 0 else None
+        return s
+
+
+def globalize(local_poses: np.ndarray, node_global: dict[int, np.ndarray]) -> np.ndarray:
+    """Every scan's global pose: its latest node's global pose composed with the local motion since that node."""
+    out = local_poses.copy()
+    anchor = None
+    for i in range(len(local_poses)):
+        if i in node_global:
+            anchor = i
+        if anchor is not None:
+            out[i] = compose(node_global[anchor], between(local_poses[anchor], local_poses[i]))
+    return out
+
+
+def graph_of(tracker, nodes, poses, global_slam=None) -> dict:
+    """Node positions (N, 2), node-in-submap segments, final and rejected loop constraints ((M, 2, 2) each) at the final poses."""
+    pose_of = {n.scan_index: poses[n.scan_index] for n in nodes}
+    xy = np.array([p[:2] for p in pose_of.values()]).reshape(-1, 2)
+    segs, loops, rejected = [], [], []
+    for sub in getattr(tracker, "all_submaps", lambda: [])():
+        anchor = sub.node_indices[0] if sub.node_indices else None
+        for i in sub.node_indices:
+            if i in pose_of and anchor in pose_of:
+                segs.append((pose_of[i][:2], pose_of[anchor][:2]))
+    for r in (global_slam.records if global_slam else []):
+        a, b = pose_of.get(r["from_scan"]), pose_of.get(r["to_scan"])
+        if a is not None and b is not None:
+            (loops if r.get("in_final_graph") else rejected).append((a[:2], b[:2]))
+    return {"nodes": xy, "node_in_submap": np.array(segs).reshape(-1, 2, 2), "loops": np.array(loops).reshape(-1, 2, 2),
+            "rejected": np.array(rejected).reshape(-1, 2, 2)}
+
+
+def _percentiles(v: list[float]) -> dict:
+    a = np.asarray(v)
+    return {"p50_ms": round(float(np.percentile(a, 50)), 4), "p99_ms": round(float(np.percentile(a, 99)), 4),
+            "max_ms": round(float(a.max()), 4), "total_s": round(float(a.sum()) / 1e3, 4), "count": int(a.size)}
+
+
+__all__ = ["Slam", "SlamResult", "globalize", "MODES"]

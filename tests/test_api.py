@@ -1,0 +1,90 @@
+"""The library API (``slam2d.Slam``): one code path with ``slam2d run``, estimates while running, scans from arrays."""
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import slam2d
+from conftest import BUNDLED, ROOT
+from slam2d.cli import main
+from slam2d.errors import InputError, UsageError
+
+
+def test_api_loop_gives_exactly_what_slam2d_run_writes(tmp_path):
+    assert main(["run", str(BUNDLED), "--out", str(tmp_path / "cli"), "--no-progress"]) == 0
+    slam = slam2d.Slam()
+    estimates = [slam.add_scan(scan) for scan in slam2d.open_source(BUNDLED)]
+    result = slam.finish()
+    result.save(tmp_path / "api")
+    for name in ("trajectory.txt", "map.pgm", "map.yaml", "config.yaml"):
+        assert (tmp_path / "api" / name).read_bytes() == (tmp_path / "cli" / name).read_bytes(), name
+
+    def records(run):  # every field but the search's wall time
+        return [{k: v for k, v in json.loads(line).items() if k != "search_ms"}
+                for line in (tmp_path / run / "constraints.jsonl").read_text().splitlines()]
+
+    assert records("api") == records("cli") and records("api")
+    assert result.poses.shape == (len(estimates), 3)
+    assert [e.index for e in estimates] == list(range(len(estimates)))
+    # the estimate while running is the local pose moved by the latest correction; loops closed on the
+    # way, so by the end the global estimate is no longer the local pose, and it is near the final one
+    assert result.summary["loop_closure"]["optimizations"] >= 1
+    last = estimates[-1]
+    assert np.abs(last.global_pose[:2] - last.local_pose[:2]).max() > 1e-3
+    assert math.hypot(*(last.global_pose[:2] - result.poses[-1][:2])) < 0.2
+
+
+def test_local_and_odometry_modes_and_misuse():
+    scans = [s for _, s in zip(range(120), slam2d.open_source(BUNDLED))]
+    local = slam2d.Slam(mode="local")
+    ests = [local.add_scan(s) for s in scans]
+    assert all(np.array_equal(e.global_pose, e.local_pose) for e in ests)  # no pose graph: nothing moves it
+    res = local.finish()
+    np.testing.assert_array_equal(res.poses, np.array([e.local_pose for e in ests]))
+    assert res.summary["mode"] == "local" and "loop_closure" not in res.summary
+    with pytest.raises(UsageError):
+        local.add_scan(scans[0])
+    odo = slam2d.Slam(mode="odometry").run(scans)
+    np.testing.assert_allclose(odo.poses, np.array([s.odom_pose for s in scans]))
+    with pytest.raises(UsageError):
+        slam2d.Slam(mode="fast")
+    with pytest.raises(InputError):
+        slam2d.Slam().finish()
+
+
+def test_scans_from_range_arrays_run_like_the_source_scans():
+    """``Scan.from_ranges`` as robot code would call it (ROS LaserScan fields) gives the same run."""
+    scans = [s for _, s in zip(range(150), slam2d.open_source(BUNDLED))]
+    rebuilt = [slam2d.Scan.from_ranges(s.timestamp, s.ranges.copy(), s.angle_min, s.angle_increment, s.range_max,
+                                       odom_pose=s.odom_pose, range_min=s.range_min, laser_offset=s.laser_offset)
+               for s in scans]
+    a = slam2d.Slam(mode="local").run(scans).poses
+    b = slam2d.Slam(mode="local").run(rebuilt).poses
+    np.testing.assert_array_equal(a, b)
+
+
+def test_from_ranges_classifies_readings_as_ros_does():
+    s = slam2d.Scan.from_ranges(1.5, [0.0, 0.05, 1.0, 30.0, 30.5, np.inf, np.nan, -np.inf], -1.0, 0.25, 30.0,
+                                range_min=0.1)
+    assert s.valid.tolist() == [False, False, True, True, False, False, False, False]
+    assert s.no_return.tolist() == [False, False, False, False, True, True, False, False]
+    assert s.num_beams == 8 and s.odom_pose is None and s.timestamp == 1.5
+
+
+def test_from_yaml(tmp_path):
+    (tmp_path / "c.yaml").write_text("submaps:\n  num_range_data: 33\n")
+    slam = slam2d.Slam.from_yaml(tmp_path / "c.yaml")
+    assert slam.config.submaps.num_range_data == 33 and slam.tracker.submaps.num_range_data == 33
+
+
+def test_example_script_runs(tmp_path):
+    out = tmp_path / "run"
+    p = subprocess.run([sys.executable, str(ROOT / "examples" / "online_slam.py"), str(BUNDLED), str(out), "--every", "500"],
+                       capture_output=True, text=True, cwd=tmp_path, timeout=600)
+    assert p.returncode == 0, p.stderr
+    assert "loop closures" in p.stdout and (out / "trajectory.txt").exists() and (out / "summary.json").exists()
+    n = sum(1 for _ in slam2d.open_source(BUNDLED))
+    assert len((out / "trajectory.txt").read_text().splitlines()) == n
