@@ -144,6 +144,7 @@ class Slam:
         if self._finished:
             raise UsageError("add_scan after finish: start a new Slam")
         self.start()
+        t_call = time.perf_counter()
         i = len(self._times)
         if scan.index != i:  # node ids are input positions
             scan = dataclasses.replace(scan, index=i)
@@ -174,6 +175,7 @@ class Slam:
         self.observer.on_scan(scan, res)
         local = self._local[-1]
         glob = local.copy() if gs is None else compose(gs.correction, local)
+        self._stage("add_scan", (time.perf_counter() - t_call) * 1e3)  # the latency a caller sees
         return Estimate(i, scan.timestamp, local.copy(), glob, bool(res.inserted), res.quality)
 
     def run(self, scans) -> SlamResult:

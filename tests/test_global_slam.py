@@ -63,6 +63,38 @@ def sim_run():
     return res, gs, gt
 
 
+def test_incremental_pose_graph_agrees_with_batch_and_forgets_removed_loops():
+    """iSAM2 fed in three steps (chain, then a true loop, then a false loop later removed) ends where
+    batch Levenberg-Marquardt over the final graph ends; the removed loop no longer pulls its nodes."""
+    gt = square_loop()
+    rng = np.random.default_rng(1)
+    est = [gt[0]]
+    for k in range(1, len(gt)):
+        est.append(compose(est[-1], between(gt[k - 1], gt[k]) + [0.0, 0.0, 0.02] + rng.normal(0, 0.005, 3)))
+    graphs = {m: PoseGraph(1.0, 1e3, 1e3, incremental=m) for m in (False, True)}  # residual check off
+    for m, g in graphs.items():
+        half = len(gt) // 2
+        for k, p in enumerate(est):
+            g.add_node(k, p)
+            if k:
+                g.add_intra(k - 1, k, between(est[k - 1], est[k]), np.diag([1e-2, 1e-2, 1e-3]))
+            if k == half:
+                g.optimize()  # the first half alone
+        g.add_loop(0, len(gt) - 1, between(gt[0], gt[-1]), [0.02, 0.02, 0.005], {})
+        g.optimize()
+        false = g.add_loop(5, 25, np.array([3.0, -2.0, 1.0]), [0.02, 0.02, 0.005], {})
+        g.optimize()
+        bent = g.node_pose(25).copy()
+        g.remove_loop(false, "test")
+        g.optimize()
+        assert math.hypot(*(g.node_pose(25)[:2] - bent[:2])) > 0.05  # the false loop had bent it; gone now
+    ids = range(len(gt))
+    a = np.array([graphs[False].node_pose(k) for k in ids])
+    b = np.array([graphs[True].node_pose(k) for k in ids])
+    assert np.abs(a - b)[:, :2].max() < 2e-3 and np.abs(a - b)[:, 2].max() < 2e-4
+    assert math.hypot(*(b[-1][:2] - b[0][:2] - (gt[-1][:2] - gt[0][:2]))) < 0.1  # the true loop closed
+
+
 def test_global_slam_on_the_simulated_loops(sim_run):
     res, gs, gt = sim_run
     s = gs.summary()["loop_closure"]

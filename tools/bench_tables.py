@@ -44,8 +44,8 @@ def _met(ok) -> str:
 
 
 def table(rows, args) -> str:
-    lines = ["| dataset | system | scans | data s | wall s | real-time × | peak RSS MB | trans abs m (mean ± std) | rot abs ° (mean ± std) | loops accepted / final / searched | precision (final graph) | health |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| dataset | system | scans | data s | wall s | wall ÷ peer | real-time × | peak RSS MB | add_scan p50 / p99 / max ms | trans abs m (mean ± std) | rot abs ° (mean ± std) | loops accepted / final / searched | precision (final graph) | health |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
         n = row["dataset"]
         s = row["slam2d"]
@@ -57,18 +57,21 @@ def table(rows, args) -> str:
             refp = lo.get("reference", {}).get("final_graph", {}).get("precision")
             if refp is not None:
                 prec += f", {100 * refp:.1f} % ref"
-        lines.append(f"| {n} | slam2d ({s['mode']}) | {s['scans']} | {s['duration_s']:.1f} | {s['wall_s']:.1f} | "
-                     f"{s['real_time_factor']:.1f} | {s['peak_rss_mb']:.0f} | {_rel(s['relations'])} | "
+        k = row.get("karto", {})
+        ratio = f"{s['wall_s'] / k['wall_s']:.1f}" if k.get("wall_s") else "—"
+        lat = s.get("timings", {}).get("add_scan")
+        lat_txt = f"{lat['p50_ms']:.1f} / {lat['p99_ms']:.1f} / {lat['max_ms']:.0f}" if lat else "—"
+        lines.append(f"| {n} | slam2d ({s['mode']}) | {s['scans']} | {s['duration_s']:.1f} | {s['wall_s']:.1f} | {ratio} | "
+                     f"{s['real_time_factor']:.1f} | {s['peak_rss_mb']:.0f} | {lat_txt} | {_rel(s['relations'])} | "
                      f"{loops_txt(s)} | {prec} | {health_txt(s)} |")
-        if "karto" in row and "relations" in row["karto"]:
-            k = row["karto"]
-            lines.append(f"| {n} | Karto peer (sequential) | {s['scans']} | {s['duration_s']:.1f} | {k['wall_s']:.1f} | "
-                         f"{s['duration_s'] / k['wall_s']:.1f} | {k['peak_rss_mb']:.0f} | {_rel(k['relations'])} | — | — | |")
+        if "relations" in k:
+            lines.append(f"| {n} | Karto peer (sequential) | {s['scans']} | {s['duration_s']:.1f} | {k['wall_s']:.1f} | 1.0 | "
+                         f"{s['duration_s'] / k['wall_s']:.1f} | {k['peak_rss_mb']:.0f} | | {_rel(k['relations'])} | — | — | |")
         om = row["odometry"]["relations"]
-        lines.append(f"| {n} | raw odometry | {s['scans']} | | | | | {_rel(om)} | | | |")
+        lines.append(f"| {n} | raw odometry | {s['scans']} | | | | | | | {_rel(om)} | | | |")
         c = CARTOGRAPHER.get(n)
         if c:
-            lines.append(f"| {n} | Cartographer (published, 6-core Xeon) | | | {c['wall_s']} | | | {fmt(c['trans'])} | "
+            lines.append(f"| {n} | Cartographer (published, 6-core Xeon) | | | {c['wall_s']} | | | | | {fmt(c['trans'])} | "
                          f"{c['rot'][0]:.3f} ± {c['rot'][1]:.3f} | | | |")
     return "\n".join(lines)
 

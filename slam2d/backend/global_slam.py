@@ -37,7 +37,8 @@ class GlobalSlam:
         self.observer = observer or Observer()
         lc = cfg.loop_closure
         self.lc = lc
-        self.graph = PoseGraph(lc.huber_scale, lc.max_residual_translation, math.radians(lc.max_residual_rotation_deg))
+        self.graph = PoseGraph(lc.huber_scale, lc.max_residual_translation, math.radians(lc.max_residual_rotation_deg),
+                               incremental=lc.incremental)
         self.matchers: dict[int, SubmapMatcher] = {}
         self.min_scores: dict[int, float] = {}  # per finished submap: the score a loop match must reach
         self.stacks = StackCache(STACK_CACHE_BYTES)
@@ -204,13 +205,13 @@ class GlobalSlam:
         self.observer.on_loop_candidate(rec)
 
     # ---- optimization
-    def optimize(self):
+    def optimize(self, final: bool = False):
         if not self.node_order:
             return
         t0 = time.perf_counter()
         if self.lc.consistency_check:
             self._check_consistency()
-        dropped = self.graph.optimize()
+        dropped = self.graph.optimize(batch=final and self.lc.final_batch)
         self.optimize_seconds += time.perf_counter() - t0
         self.optimizations += 1
         self.loops_at_last_optimize = len(self.graph.loops)
@@ -262,7 +263,7 @@ class GlobalSlam:
             t0 = time.perf_counter()
             self.gnc_removed = len(self.graph.gnc_prune())
             self.optimize_seconds += time.perf_counter() - t0
-        self.optimize()
+        self.optimize(final=True)
         self.stacks.clear()  # no more searches: the precomputation stacks go before the map is built
         return {j: self.graph.node_pose(j) for j in self.node_order}
 

@@ -5,9 +5,14 @@ Variables are node poses in the map frame; a submap's pose is the pose of its fi
 a prior on the first node; node-in-submap constraints from local SLAM between a submap's
 first node and each node inserted into it (their noise from the real-time matcher's
 covariance, in the node's frame); loop-closure constraints with their own covariance from the match,
-under a Huber robust noise model. ``optimize`` runs batch Levenberg-Marquardt from the current
-estimate; loop constraints whose residual stays large afterwards are removed and the graph
-solved again (a second judge: the first is ``consistency``, which does not use the solution).
+under a Huber robust noise model. ``optimize`` solves from the current estimate, either by batch
+Levenberg-Marquardt over the whole graph or, with ``incremental``, by iSAM2 (Kaess et al. 2012),
+which takes only the factors and nodes added since its last update, re-eliminates the part of
+the Bayes tree they touch, and drops removed loop constraints from its own factors too
+(``update(new factors, new values, removed indices)``); ``optimize(batch=True)`` is the
+batch solve in either mode. Loop constraints whose residual stays large afterwards are removed
+and the graph solved again (a second judge: the first is ``consistency``, which does not use
+the solution).
 This is the only module that imports gtsam.
 """
 from __future__ import annotations
@@ -41,9 +46,25 @@ class LoopFactor:
     base: object = None  # its Gaussian noise model (before the robust wrapper)
 
 
+#: iSAM2 relinearization steps after an update at most (they stop once no variable moved past the threshold)
+ISAM_EXTRA_STEPS = 5
+
+
 class PoseGraph:
-    def __init__(self, huber_scale: float = 1.0, max_residual_trans: float = 0.3, max_residual_rot: float = 0.05):
+    def __init__(self, huber_scale: float = 1.0, max_residual_trans: float = 0.3, max_residual_rot: float = 0.05,
+                 incremental: bool = False):
         self.graph = gtsam.NonlinearFactorGraph()
+        self.incremental = incremental
+        self.isam = None
+        if incremental:
+            params = gtsam.ISAM2Params()
+            params.setRelinearizeThreshold(0.01)
+            params.relinearizeSkip = 1
+            self.isam = gtsam.ISAM2(params)
+        self._pending: list[int] = []      # graph indices of factors iSAM2 has not seen
+        self._new_values = gtsam.Values()  # nodes iSAM2 has not seen
+        self._isam_index: dict[int, int] = {}  # graph index -> iSAM2's index of the same factor
+        self._removals: list[int] = []     # iSAM2 indices of factors removed since its last update
         self.values = gtsam.Values()
         self.huber_scale = huber_scale
         self.max_residual_trans = max_residual_trans
@@ -58,10 +79,19 @@ class PoseGraph:
     def add_node(self, j: int, pose):
         if not self.values.exists(_key("n", j)):
             self.values.insert(_key("n", j), _pose(pose))
+            if self.incremental:
+                self._new_values.insert(_key("n", j), _pose(pose))
             if not self.has_prior:
-                self.graph.add(gtsam.PriorFactorPose2(_key("n", j), _pose(pose),
-                                                      gtsam.noiseModel.Diagonal.Sigmas(np.array([1e-3, 1e-3, 1e-4]))))
+                self._add(gtsam.PriorFactorPose2(_key("n", j), _pose(pose),
+                                                 gtsam.noiseModel.Diagonal.Sigmas(np.array([1e-3, 1e-3, 1e-4]))))
                 self.has_prior = True
+
+    def _add(self, factor) -> int:
+        self.graph.add(factor)
+        i = self.graph.size() - 1
+        if self.incremental:
+            self._pending.append(i)
+        return i
 
     def node_pose(self, j) -> np.ndarray:
         return _arr(self.values.atPose2(_key("n", j)))
@@ -78,20 +108,24 @@ class PoseGraph:
     def add_intra(self, anchor: int, j: int, relative, covariance: np.ndarray):
         """Node ``j`` in the submap whose first node is ``anchor``."""
         noise = gtsam.noiseModel.Gaussian.Covariance(np.asarray(covariance, dtype=float))
-        self.graph.add(gtsam.BetweenFactorPose2(_key("n", anchor), _key("n", j), _pose(relative), noise))
+        self._add(gtsam.BetweenFactorPose2(_key("n", anchor), _key("n", j), _pose(relative), noise))
 
     def add_loop(self, anchor: int, j: int, relative, covariance, record: dict) -> LoopFactor:
         """``covariance``: 3×3 in the node's frame, or 3 sigmas."""
         c = np.asarray(covariance, dtype=float)
         base = gtsam.noiseModel.Diagonal.Sigmas(c) if c.ndim == 1 else gtsam.noiseModel.Gaussian.Covariance(c)
         noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(self.huber_scale), base)
-        self.graph.add(gtsam.BetweenFactorPose2(_key("n", anchor), _key("n", j), _pose(relative), noise))
-        f = LoopFactor(self.graph.size() - 1, anchor, j, np.asarray(relative, dtype=float), record, base)
+        i = self._add(gtsam.BetweenFactorPose2(_key("n", anchor), _key("n", j), _pose(relative), noise))
+        f = LoopFactor(i, anchor, j, np.asarray(relative, dtype=float), record, base)
         self.loops.append(f)
         return f
 
     def remove_loop(self, f: LoopFactor, reason: str):
         self.graph.remove(f.index)
+        if f.index in self._isam_index:
+            self._removals.append(self._isam_index.pop(f.index))
+        elif f.index in self._pending:
+            self._pending.remove(f.index)
         self.loops.remove(f)
         f.record["in_final_graph"] = False
         f.record["reason"] = reason
@@ -103,7 +137,10 @@ class PoseGraph:
         return _arr(a.between(n).between(_pose(f.relative)))
 
     # ---- solve
-    def _solve(self):
+    def _solve(self, batch: bool = False):
+        if self.incremental and not batch:
+            self._update_isam()
+            return
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(50)
         opt = gtsam.LevenbergMarquardtOptimizer(self.graph, self.values, params)
@@ -111,6 +148,24 @@ class PoseGraph:
         self.values = opt.optimize()
         self.iterations += opt.iterations()
         self.last_error = (before, self.graph.error(self.values))
+
+    def _update_isam(self):
+        new = gtsam.NonlinearFactorGraph()
+        for i in self._pending:
+            new.add(self.graph.at(i))
+        r = self.isam.update(new, self._new_values, self._removals)
+        for i, k in zip(self._pending, r.getNewFactorsIndices()):
+            self._isam_index[i] = int(k)
+        self._pending, self._new_values, self._removals = [], gtsam.Values(), []
+        self.iterations += 1
+        # a loop moves nodes far from where they were linearized: relinearize until none moves enough
+        for _ in range(ISAM_EXTRA_STEPS):
+            r = self.isam.update()
+            self.iterations += 1
+            if r.getVariablesRelinearized() == 0:
+                break
+        self.values = self.isam.calculateEstimate()
+        self.last_error = (math.nan, self.graph.error(self.values))  # the error before: not computed (a full pass)
 
     def gnc_prune(self) -> list[LoopFactor]:
         """Graduated non-convexity (Yang et al. 2020; ``gtsam.GncLMOptimizer``, truncated least squares)
@@ -141,11 +196,13 @@ class PoseGraph:
             self.remove_loop(f, "GNC outlier")
         return out
 
-    def optimize(self, max_rounds: int = 20) -> list[LoopFactor]:
+    def optimize(self, max_rounds: int = 20, batch: bool = False) -> list[LoopFactor]:
         """Solve; then repeatedly drop the worst loop constraints whose residual stays large and
         solve again. Only the worst quarter of the offenders goes per round, so that a few false
-        constraints that bend the graph do not take the true ones with them. Returns the dropped."""
-        self._solve()
+        constraints that bend the graph do not take the true ones with them. Returns the dropped.
+        ``batch``: Levenberg-Marquardt over the whole graph even when incremental (iSAM2 is not
+        updated afterwards: for the last solve)."""
+        self._solve(batch)
         dropped = []
         for rnd in range(max_rounds + 1):
             bad = []
@@ -162,5 +219,5 @@ class PoseGraph:
             for f in worst:
                 self.remove_loop(f, "residual after optimization")
             dropped.extend(worst)
-            self._solve()
+            self._solve(batch)
         return dropped

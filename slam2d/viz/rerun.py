@@ -224,8 +224,9 @@ class RerunObserver(Observer):
             n_list.extend(js)
         intra = np.stack([at(a_list), at(n_list)], axis=1) if n_list else np.zeros((0, 2, 2), np.float32)
         self.on_constraints(seq, xy, intra, segs[final], segs[~final])
-        rr.log("/events", rr.TextLog(f"pose graph optimized: {len(global_slam.graph.loops)} loop constraints, "
-                                     f"error {before:.1f} -> {after:.1f}", level=rr.TextLogLevel.INFO))
+        err = f"error {after:.1f}" if math.isnan(before) else f"error {before:.1f} -> {after:.1f}"
+        rr.log("/events", rr.TextLog(f"pose graph optimized: {len(global_slam.graph.loops)} loop constraints, {err}",
+                                     level=rr.TextLogLevel.INFO))
 
     def on_constraints(self, seq, nodes, node_in_submap, loops=(), rejected=()) -> None:
         """Pose graph: node positions (N, 2) and constraints as (M, 2, 2) segment arrays."""
