@@ -1,6 +1,8 @@
 """Rerun logging of a slam2d run (rerun-sdk 0.41), attached as an `Observer`.
 
-Entities (all in the ``/world`` frame, metres):
+Entities (all in the ``/world`` frame, metres, drawn in one 3D view seen from above: the map is a
+``GridMap``, which only 3D views draw, so scans, robot and graph are 3D archetypes on the z = 0
+plane too; a 2D view cannot show a GridMap, and an Image in it would put y downwards):
 
 * ``/world/scan/hits``, ``/world/scan/no_return`` — each scan's points and the ends of its
   free-space rays (no-return beams and readings beyond the range filter), per scan;
@@ -8,9 +10,12 @@ Entities (all in the ``/world`` frame, metres):
 * ``/world/submaps/active`` (GridMap, throttled) and ``/world/submaps/<k>`` (finished ones,
   re-logged at new poses after each optimization);
 * ``/world/graph/nodes``, ``/world/graph/node_in_submap``, ``/world/graph/loops``,
-  ``/world/graph/rejected`` — the pose graph, in distinct colours;
+  ``/world/graph/rejected`` — the pose graph, in distinct colours (node-in-submap links are
+  hidden in the view by default: a dense web over the map; the blueprint panel switches them on);
 * ``/world/map`` — the final occupancy map;
-* ``/metrics/timing/*``, ``/metrics/score/*`` — Scalars; ``/events`` — TextLog.
+* ``/metrics/timing/*``, ``/metrics/score/*`` — Scalars (a series' first call, which compiles or
+  loads numba kernels, goes to ``/metrics/first_call/*`` so the plot keeps its scale);
+  ``/events`` — TextLog.
 
 Timelines: ``scan`` (sequence) and ``time`` (sensor time). Per-scan data is buffered and
 sent with ``send_columns`` in blocks, so logging costs little per scan.
@@ -39,10 +44,27 @@ LOOP = (40, 200, 60, 255)
 REJECTED = (220, 40, 40, 200)
 
 
-def blueprint():
+#: where each layer is drawn [m above the map plane]: later layers over earlier ones
+Z_MAP, Z_SUBMAP, Z_GRAPH, Z_SCAN = -0.02, -0.01, 0.01, 0.02
+
+
+def xyz(points, z=0.0) -> np.ndarray:
+    """(N, 2) → (N, 3) float32 on the plane z."""
+    p = np.asarray(points, dtype=np.float32).reshape(-1, 2)
+    return np.column_stack([p, np.full(len(p), z, np.float32)])
+
+
+def blueprint(center=None, extent: float = 40.0):
+    """The layout; ``center`` (x, y) and ``extent`` [m] place the camera above the map, looking down."""
+    eye = None
+    if center is not None:
+        cx, cy = float(center[0]), float(center[1])
+        eye = rrb.EyeControls3D(kind=rrb.Eye3DKind.Orbital, position=[cx, cy - 0.01 * extent, 1.1 * extent],
+                                look_target=[cx, cy, 0.0], eye_up=[0.0, 0.0, 1.0])
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Spatial2DView(name="map", origin="/world"),
+            rrb.Spatial3DView(name="map", origin="/world", eye_controls=eye, line_grid=rrb.LineGrid3D(visible=False),
+                              overrides={"/world/graph/node_in_submap": rrb.EntityBehavior(visible=False)}),
             rrb.Vertical(
                 rrb.TimeSeriesView(name="timings [ms]", origin="/metrics/timing"),
                 rrb.TimeSeriesView(name="match scores", origin="/metrics/score"),
@@ -63,14 +85,14 @@ def occupancy_bytes(grid) -> tuple[bytes, int, int]:
     return out.tobytes(), p.shape[1], p.shape[0]
 
 
-def grid_map(grid, transform=None) -> rr.GridMap:
+def grid_map(grid, transform=None, z: float = Z_SUBMAP) -> rr.GridMap:
     """The grid as a GridMap; ``transform`` (x, y, θ) moves it from its local frame to the map frame."""
     data, w, h = occupancy_bytes(grid)
-    corner = np.array([float(grid.origin[0]), float(grid.origin[1]), 0.0])
+    corner = np.array([float(grid.origin[0]), float(grid.origin[1]), z])
     theta = 0.0
     if transform is not None:
         c, s = math.cos(transform[2]), math.sin(transform[2])
-        corner = np.array([transform[0] + c * corner[0] - s * corner[1], transform[1] + s * corner[0] + c * corner[1], 0.0])
+        corner = np.array([transform[0] + c * corner[0] - s * corner[1], transform[1] + s * corner[0] + c * corner[1], z])
         theta = float(transform[2])
     return rr.GridMap(data=data, format=rr.components.ImageFormat(width=w, height=h, color_model="L", channel_datatype="U8"),
                       cell_size=grid.resolution, translation=corner.tolist(),
@@ -94,6 +116,8 @@ class RerunObserver(Observer):
         self._logged_finished = set()
         self._global = None
         self._submap_logged: dict = {}
+        self._timed: set = set()  # timing series whose first call (numba compile or cache load) is logged apart
+        rr.log("/world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
 
     @staticmethod
     def _empty():
@@ -103,8 +127,10 @@ class RerunObserver(Observer):
         return {"timestamp": t} if t > 1e8 else {"duration": t}
 
     def on_start(self, info: dict) -> None:
+        # at scan 0, not static: static data on an entity hides everything logged on it over time
+        rr.set_time("scan", sequence=0)
         rr.log("/events", rr.TextLog(f"slam2d run on {info.get('input')} ({info.get('mode')})",
-                                     level=rr.TextLogLevel.INFO), static=True)
+                                     level=rr.TextLogLevel.INFO))
 
     def on_scan(self, scan, result) -> None:
         # scans, robot and active submap are drawn in the map frame: the local pose moved by the
@@ -121,6 +147,9 @@ class RerunObserver(Observer):
         b["pose"].append(pose)
         b["score"].append(np.nan if result.score is None else float(result.score))
         for k, v in result.timings.items():
+            if k not in self._timed:  # the first call compiles (or loads) numba kernels: its own series
+                self._timed.add(k)
+                k = f"first_call/{k}"
             b["timings"].setdefault(k, {})[self._seq] = v
         self._traj.append(pose[:2].copy())
         self._seq += 1
@@ -136,7 +165,7 @@ class RerunObserver(Observer):
         if self._seq % self.trajectory_every == 0:
             rr.set_time("scan", sequence=self._seq - 1)
             rr.set_time("time", **self._time_kw(scan.timestamp))
-            rr.log("/world/trajectory", rr.LineStrips2D([np.array(self._traj, dtype=np.float32)], colors=[TRAJ], radii=[0.02]))
+            rr.log("/world/trajectory", rr.LineStrips3D([xyz(self._traj, Z_GRAPH)], colors=[TRAJ], radii=[0.02]))
         if len(b["seq"]) >= self.flush_every:
             self.flush()
 
@@ -152,13 +181,13 @@ class RerunObserver(Observer):
             arrays = b[key]
             lengths = [len(a) for a in arrays]
             pos = np.concatenate(arrays) if sum(lengths) else np.zeros((0, 2), np.float32)
-            cols = rr.Points2D.columns(positions=pos, colors=np.tile(np.array(color, np.uint8), (len(pos), 1)),
+            cols = rr.Points3D.columns(positions=xyz(pos, Z_SCAN), colors=np.tile(np.array(color, np.uint8), (len(pos), 1)),
                                        radii=np.full(len(pos), 0.03, np.float32)).partition(lengths)
             rr.send_columns(f"/world/scan/{name}", indexes=idx, columns=cols)
         poses = np.asarray(b["pose"])
         vec = 0.4 * np.column_stack([np.cos(poses[:, 2]), np.sin(poses[:, 2])])
         rr.send_columns("/world/robot", indexes=idx,
-                        columns=rr.Arrows2D.columns(origins=poses[:, :2], vectors=vec))
+                        columns=rr.Arrows3D.columns(origins=xyz(poses[:, :2], Z_SCAN), vectors=xyz(vec)))
         sc = np.asarray(b["score"])
         ok = ~np.isnan(sc)
         if ok.any():
@@ -167,7 +196,8 @@ class RerunObserver(Observer):
         for k, d in b["timings"].items():
             s = np.fromiter(d.keys(), dtype=np.int64)
             v = np.fromiter(d.values(), dtype=np.float64)
-            rr.send_columns(f"/metrics/timing/{k}", indexes=[rr.TimeColumn("scan", sequence=s)],
+            path = f"/metrics/{k}" if k.startswith("first_call/") else f"/metrics/timing/{k}"
+            rr.send_columns(path, indexes=[rr.TimeColumn("scan", sequence=s)],
                             columns=rr.Scalars.columns(scalars=v))
         self._buf = self._empty()
 
@@ -182,7 +212,9 @@ class RerunObserver(Observer):
 
     def on_loop_candidate(self, record: dict) -> None:
         rr.set_time("scan", sequence=self._seq - 1 if self._seq else 0)
-        rr.log("/metrics/timing/loop_search", rr.Scalars(record["search_ms"]))
+        path = "/metrics/timing/loop_search" if "loop_search" in self._timed else "/metrics/first_call/loop_search"
+        self._timed.add("loop_search")
+        rr.log(path, rr.Scalars(record["search_ms"]))
         if record["score"] is not None:
             rr.log("/metrics/score/loop", rr.Scalars(record["score"]))
         level = rr.TextLogLevel.INFO if record["accepted"] else rr.TextLogLevel.DEBUG
@@ -231,12 +263,12 @@ class RerunObserver(Observer):
     def on_constraints(self, seq, nodes, node_in_submap, loops=(), rejected=()) -> None:
         """Pose graph: node positions (N, 2) and constraints as (M, 2, 2) segment arrays."""
         rr.set_time("scan", sequence=seq)
-        rr.log("/world/graph/nodes", rr.Points2D(nodes, radii=0.04, colors=[(250, 200, 0, 255)]))
+        rr.log("/world/graph/nodes", rr.Points3D(xyz(nodes, Z_GRAPH), radii=0.04, colors=[(250, 200, 0, 255)]))
         for name, segs, color in (("node_in_submap", node_in_submap, INTRA), ("loops", loops, LOOP),
                                   ("rejected", rejected, REJECTED)):
             if len(segs):
-                rr.log(f"/world/graph/{name}", rr.LineStrips2D(list(np.asarray(segs, np.float32)), colors=[color],
-                                                                 radii=[0.01]))
+                strips = [xyz(seg, Z_GRAPH) for seg in np.asarray(segs, np.float32)]
+                rr.log(f"/world/graph/{name}", rr.LineStrips3D(strips, colors=[color], radii=[0.01]))
 
     def on_finish(self, result) -> None:
         """The final map, trajectory and pose graph at the last scan."""
@@ -247,11 +279,18 @@ class RerunObserver(Observer):
 
     def log_final(self, seq, grid, poses, nodes, node_in_submap, loops, rejected, stats: dict) -> None:
         rr.set_time("scan", sequence=seq)
-        rr.log("/world/map", grid_map(grid))
-        rr.log("/world/trajectory", rr.LineStrips2D([np.asarray(poses[:, :2], np.float32)], colors=[TRAJ], radii=[0.02]))
+        rr.log("/world/map", grid_map(grid, z=Z_MAP))
+        rr.log("/world/trajectory", rr.LineStrips3D([xyz(poses[:, :2], Z_GRAPH)], colors=[TRAJ], radii=[0.02]))
         self.on_constraints(seq, nodes, node_in_submap, loops, rejected)
         rr.log("/events", rr.TextLog("run finished: " + ", ".join(f"{k} {v}" for k, v in stats.items()),
                                      level=rr.TextLogLevel.INFO))
+        # the camera above the whole map, looking down (the blueprint of the start knew no map yet)
+        b = grid.known_bounds()
+        if b is not None:
+            r0, r1, c0, c1 = b
+            lo = grid.origin + np.array([c0, r0]) * grid.resolution
+            hi = grid.origin + np.array([c1, r1]) * grid.resolution
+            rr.send_blueprint(blueprint(0.5 * (lo + hi), float(np.hypot(*(hi - lo)))), make_active=True)
 
     def close(self) -> None:
         """Flush everything and close the recording (the .rrd is complete after this)."""
