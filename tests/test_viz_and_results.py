@@ -36,7 +36,7 @@ def test_rrd_verifies_and_has_the_entities(run_with_outputs):
                    "/world/submaps/active", "/world/submaps/0", "/world/graph/nodes", "/world/graph/node_in_submap",
                    "/world/map", "/metrics/timing/match", "/metrics/score/local_match", "/events",
                    "/world/graph/loops", "/world/graph/rejected", "/metrics/timing/loop_search", "/metrics/score/loop",
-                   "/metrics/timing/optimization", "/metrics/optimization/error"):
+                   "/metrics/optimization/time_ms", "/metrics/optimization/error"):
         assert entity in text, entity
 
 

@@ -11,7 +11,8 @@ plane too; a 2D view cannot show a GridMap, and an Image in it would put y downw
   re-logged at new poses after each optimization);
 * ``/world/graph/nodes``, ``/world/graph/node_in_submap``, ``/world/graph/loops``,
   ``/world/graph/rejected`` — the pose graph, in distinct colours (node-in-submap links are
-  hidden in the view by default: a dense web over the map; the blueprint panel switches them on);
+  hidden in the view by default, as are rejected loop candidates: each a dense web over the map;
+  the blueprint panel switches them on);
 * ``/world/map`` — the final occupancy map;
 * ``/metrics/timing/*``, ``/metrics/score/*`` — Scalars (a series' first call, which compiles or
   loads numba kernels, goes to ``/metrics/first_call/*`` so the plot keeps its scale);
@@ -64,10 +65,12 @@ def blueprint(center=None, extent: float = 40.0):
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Spatial3DView(name="map", origin="/world", eye_controls=eye, line_grid=rrb.LineGrid3D(visible=False),
-                              overrides={"/world/graph/node_in_submap": rrb.EntityBehavior(visible=False)}),
+                              overrides={"/world/graph/node_in_submap": rrb.EntityBehavior(visible=False),
+                                         "/world/graph/rejected": rrb.EntityBehavior(visible=False)}),
             rrb.Vertical(
                 rrb.TimeSeriesView(name="timings [ms]", origin="/metrics/timing"),
                 rrb.TimeSeriesView(name="match scores", origin="/metrics/score"),
+                rrb.TimeSeriesView(name="pose graph", origin="/metrics/optimization"),
                 rrb.TextLogView(name="events", origin="/events"),
             ),
             column_shares=[3, 2],
@@ -227,7 +230,8 @@ class RerunObserver(Observer):
         self._global = global_slam
         seq = self._seq - 1 if self._seq else 0
         rr.set_time("scan", sequence=seq)
-        rr.log("/metrics/timing/optimization", rr.Scalars(1e3 * getattr(global_slam, "last_optimize_seconds", 0.0)))
+        # an optimization takes far longer than a scan: its own plot, so the per-scan timings keep their scale
+        rr.log("/metrics/optimization/time_ms", rr.Scalars(1e3 * getattr(global_slam, "last_optimize_seconds", 0.0)))
         before, after = global_slam.graph.last_error
         rr.log("/metrics/optimization/error", rr.Scalars(after))
         for k, T in global_slam.submap_transforms().items():
