@@ -45,8 +45,11 @@ LOOP = (40, 200, 60, 255)
 REJECTED = (220, 40, 40, 200)
 
 
-#: where each layer is drawn [m above the map plane]: later layers over earlier ones
-Z_MAP, Z_SUBMAP, Z_GRAPH, Z_SCAN = -0.02, -0.01, 0.01, 0.02
+#: where each layer is drawn [m above the map plane], lowest first: the final map covers the submaps
+#: it was made from; the graph and the scans lie on top
+Z_SUBMAP, Z_MAP, Z_GRAPH, Z_SCAN = -0.02, -0.01, 0.01, 0.02
+#: submaps are drawn translucent: a submap's unknown cells would otherwise hide its neighbours
+SUBMAP_OPACITY = 0.6
 
 
 def xyz(points, z=0.0) -> np.ndarray:
@@ -88,7 +91,7 @@ def occupancy_bytes(grid) -> tuple[bytes, int, int]:
     return out.tobytes(), p.shape[1], p.shape[0]
 
 
-def grid_map(grid, transform=None, z: float = Z_SUBMAP) -> rr.GridMap:
+def grid_map(grid, transform=None, z: float = Z_SUBMAP, opacity: float = SUBMAP_OPACITY) -> rr.GridMap:
     """The grid as a GridMap; ``transform`` (x, y, θ) moves it from its local frame to the map frame."""
     data, w, h = occupancy_bytes(grid)
     corner = np.array([float(grid.origin[0]), float(grid.origin[1]), z])
@@ -100,7 +103,7 @@ def grid_map(grid, transform=None, z: float = Z_SUBMAP) -> rr.GridMap:
     return rr.GridMap(data=data, format=rr.components.ImageFormat(width=w, height=h, color_model="L", channel_datatype="U8"),
                       cell_size=grid.resolution, translation=corner.tolist(),
                       quaternion=rr.Quaternion(xyzw=[0.0, 0.0, math.sin(theta / 2), math.cos(theta / 2)]),
-                      colormap=rr.components.Colormap.RvizMap)
+                      colormap=rr.components.Colormap.RvizMap, opacity=opacity)
 
 
 class RerunObserver(Observer):
@@ -283,7 +286,7 @@ class RerunObserver(Observer):
 
     def log_final(self, seq, grid, poses, nodes, node_in_submap, loops, rejected, stats: dict) -> None:
         rr.set_time("scan", sequence=seq)
-        rr.log("/world/map", grid_map(grid, z=Z_MAP))
+        rr.log("/world/map", grid_map(grid, z=Z_MAP, opacity=1.0))
         rr.log("/world/trajectory", rr.LineStrips3D([xyz(poses[:, :2], Z_GRAPH)], colors=[TRAJ], radii=[0.02]))
         self.on_constraints(seq, nodes, node_in_submap, loops, rejected)
         rr.log("/events", rr.TextLog("run finished: " + ", ".join(f"{k} {v}" for k, v in stats.items()),
