@@ -30,7 +30,7 @@ from slam2d.grid.submap import ActiveSubmaps
 from slam2d.types import MatchingResult
 from slam2d.matching.real_time import RealTimeCorrelativeScanMatcher
 from slam2d.matching.refine import refine
-from slam2d.matching.search import angular_step
+from slam2d.matching.search import SearchParameters, angular_step
 from slam2d.motion_filter import MotionFilter
 from slam2d.range_data import range_data, voxel_filter
 
@@ -166,13 +166,10 @@ class LocalSlam:
     def _typical_score(self) -> float | None:
         return float(np.median(self.recent_scores)) if len(self.recent_scores) >= MIN_SCORES_FOR_TRUST else None
 
-    def _recovery_floor(self, limit: float) -> float:
-        """Below this, no pose of the recovery window can score ``limit`` once the delta penalty is
-        taken off (the penalty's smallest factor is at the window's corner)."""
-        wide = self.wide_matcher
-        p = wide.penalty
-        v = p.translation_weight * math.sqrt(2.0) * wide.linear_window + p.rotation_weight * wide.angular_window
-        return float(np.nextafter(limit * math.exp(-v * v), -np.inf))
+    def _recovery_floor(self, limit: float, params: SearchParameters) -> float:
+        """Below this, no pose of the recovery lattice ``params`` can score ``limit`` once the delta
+        penalty is taken off."""
+        return float(np.nextafter(limit * self.wide_matcher.penalty.smallest_factor(params), -np.inf))
 
     def _recover(self, grid, scan, predicted, points, limit, floor=0.0):
         """Branch-and-bound over the recovery windows around each distinct prediction, in the order the
@@ -182,7 +179,7 @@ class LocalSlam:
         poses; the scene cannot tell them apart, so the likelier prediction decides.
 
         ``floor``: the caller takes a recovered match only if the fine search around its peak scores
-        ``limit``, and no pose of the recovery lattice scoring below ``_recovery_floor(limit)`` (its
+        ``limit``, and no pose of the recovery lattice scoring below ``_recovery_floor`` (its
         score times the smallest delta penalty) can reach that. So branch-and-bound may cut every
         subtree whose bound is not above the floor: the best match above it is the same one, and a
         prediction whose best lies below it yields nothing instead of a match the caller would
@@ -245,7 +242,9 @@ class LocalSlam:
                 # cheap by branch-and-bound, Hess et al. 2016 Sec. V-C)
                 t_rec = time.perf_counter()
                 # with a match in hand, a recovered one is only taken when trusted (below)
-                floor = 0.0 if m is None or limit is None else self._recovery_floor(limit)
+                w = self.wide_matcher
+                floor = 0.0 if m is None or limit is None else self._recovery_floor(
+                    limit, SearchParameters.make(w.linear_window, w.angular_window, grid.resolution, points))
                 wide = self._recover(grid, scan, predicted, points, limit, floor)
                 timings["recovery"] = (time.perf_counter() - t_rec) * 1e3
                 self.num_recovery_searches += 1

@@ -166,7 +166,8 @@ def test_recovery_floor_changes_no_result(monkeypatch):
     assert floored.num_recovery_searches >= 2 and floored.num_recovered >= 1
     seen = []
     real = LocalSlam._recovery_floor
-    monkeypatch.setattr(LocalSlam, "_recovery_floor", lambda self, limit: seen.append(real(self, limit)) or 0.0)
+    monkeypatch.setattr(LocalSlam, "_recovery_floor",
+                        lambda self, limit, params: seen.append(real(self, limit, params)) or 0.0)
     plain, without = _run(scans)
     assert seen and min(seen) > 0.3  # the floor was live (it prunes), yet nothing changed:
     np.testing.assert_array_equal(np.array(with_floor), np.array(without))
@@ -194,7 +195,10 @@ def test_recovery_floor_keeps_a_match_that_only_the_penalty_pushes_below_the_lim
     direct = wide._match(grid, predicted, points, 0.0, wide.linear_window, wide.angular_window)
     assert direct.score < 0.98 * found.score  # the penalty costs this pose a few per cent
     limit = 0.5 * (direct.score + found.score)  # so the limit lies between the two
-    floored = tracker._recover(grid, scan, predicted, points, limit, tracker._recovery_floor(limit))
+    from slam2d.matching.search import SearchParameters
+
+    params = SearchParameters.make(wide.linear_window, wide.angular_window, grid.resolution, points)
+    floored = tracker._recover(grid, scan, predicted, points, limit, tracker._recovery_floor(limit, params))
     assert floored is not None
     np.testing.assert_array_equal(floored.pose, found.pose)
     assert floored.score == found.score >= limit

@@ -290,3 +290,17 @@ def test_branch_and_bound_is_exact_across_borders():
             bad.append((case, why))
     assert crossed_low > BORDER_CASES // 2
     assert not bad, f"{len(bad)} of {BORDER_CASES} cases disagree, e.g. {bad[:3]}"
+
+
+@pytest.mark.parametrize("res,window,ang_deg", [(0.05, 2.0, 45.0), (0.03, 2.0, 45.0), (0.07, 0.5, 7.3)])
+def test_smallest_delta_penalty_is_the_lattice_corner(res, window, ang_deg):
+    """``DeltaPenalty.smallest_factor`` equals the smallest factor the kernel applies anywhere on the
+    lattice, also where rounding to whole cells and angular steps makes the lattice wider than asked."""
+    pts = np.random.default_rng(3).normal(0, 8.0, (200, 2))
+    params = SearchParameters.make(window, math.radians(ang_deg), res, pts)
+    pen = DeltaPenalty(0.1, 0.1)
+    k = 2 * params.linear_cells + 1
+    ones = np.ones((len(params.angles), k, k), np.float32)
+    _kernels.apply_delta_penalty(ones, np.ascontiguousarray(params.angles), 0.1, 0.1, res)
+    assert pen.smallest_factor(params) == pytest.approx(float(ones.min()), rel=1e-6)
+    assert pen.smallest_factor(params) <= float(ones.min()) * (1 + 1e-6)

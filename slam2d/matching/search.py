@@ -147,6 +147,13 @@ class DeltaPenalty:
     translation_weight: float = 0.0
     rotation_weight: float = 0.0
 
+    def smallest_factor(self, params: SearchParameters) -> float:
+        """The factor at the lattice's far corner (its largest offset and angle, as the kernels
+        measure them): no candidate of ``params`` is penalized more."""
+        d = math.sqrt(2.0) * params.linear_cells * params.resolution
+        v = self.translation_weight * d + self.rotation_weight * float(np.abs(params.angles).max())
+        return math.exp(-v * v)
+
 
 def exhaustive(grid: MatchGrid, cells: np.ndarray, linear_cells: int, penalty: DeltaPenalty | None = None,
                angles: np.ndarray | None = None) -> np.ndarray:
