@@ -1,7 +1,6 @@
 """Records that flow through the pipeline."""
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 from typing import TYPE_CHECKING
@@ -127,7 +126,3 @@ class Estimate:
     global_pose: np.ndarray
     inserted: bool
     quality: str
-
-    @property
-    def heading_deg(self) -> float:
-        return math.degrees(float(self.global_pose[2]))
