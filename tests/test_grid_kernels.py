@@ -171,6 +171,45 @@ def test_many_scans_striped_equal_one_at_a_time(threads):
     assert (la > 0).sum() > 500
 
 
+@pytest.mark.parametrize("band_cells,threads", [(1, 1), (700, 2), (5000, 2), (1 << 22, 1)])
+def test_map_built_in_bands_equals_scan_by_scan(band_cells, threads):
+    """``build_finished`` holds log-odds for one band of rows at a time and skips rays that miss a
+    band: bands of one row up to the whole grid must give the probabilities and known mask of
+    scan-by-scan insertion, with rays crossing band borders in both directions."""
+    rng = np.random.default_rng(11)
+    angles = np.linspace(-np.pi, np.pi, 120, endpoint=False)
+    scans = []
+    for i in range(30):
+        r = rng.uniform(0.3, 6.0, 120)
+        o = rng.normal(0, 2.0, 2)
+        hits = np.c_[r * np.cos(angles + 0.1 * i), r * np.sin(angles + 0.1 * i)] + o
+        misses = (hits[::10] - o) * 1.7 + o if i % 2 else np.zeros((0, 2))
+        scans.append((o, hits, misses))
+    scans.append((np.zeros(2), np.zeros((0, 2)), np.zeros((0, 2))))  # an empty scan changes nothing
+    built = ProbabilityGrid(0.05)
+    built.build_finished(scans, threads=threads, band_cells=band_cells)
+    one = ProbabilityGrid(0.05)
+    for o, h, m in scans:
+        one.insert(o, h, m)
+    assert built.logodds.size == 0 and built.stamp.size == 0 and built.prob.dtype == np.float32
+    rows = built.shape[0]
+    cols = built.shape[1]
+    assert band_cells >= rows * cols or max(1, band_cells // cols) < rows  # several bands, or one
+    crops = []
+    for g in (built, one):
+        r0, r1, c0, c1 = g.known_bounds()
+        crops.append((g.origin + np.array([c0, r0]) * g.resolution, g.prob[r0:r1, c0:c1], g.known[r0:r1, c0:c1]))
+    (oa, pa, ka), (ob, pb, kb) = crops
+    np.testing.assert_allclose(oa, ob, atol=1e-9)
+    np.testing.assert_array_equal(pa, pb)
+    np.testing.assert_array_equal(ka, kb)
+    # unknown cells read the unknown probability, as matching expects; probability() says NaN there
+    assert (built.prob[built.known == 0] == np.float32(built.unknown_probability)).all()
+    p = built.probability(unknown_value=np.nan)
+    assert np.array_equal(np.isnan(p), built.known == 0)
+    assert (pa > 0.5).sum() > 500 and (pa < 0.3).sum() > 500
+
+
 def test_frozen_grid_keeps_its_probabilities_without_log_odds():
     g = ProbabilityGrid(0.05)
     rng = np.random.default_rng(5)

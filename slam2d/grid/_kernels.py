@@ -31,7 +31,7 @@ def _apply(logodds, prob, stamp, r, c, scan_id, delta, lo_min, lo_max):
 
 @njit(cache=True, nogil=True)
 def insert_rays(logodds, prob, stamp, scan_id, ox, oy, ends, is_hit, hit_delta, miss_delta, lo_min, lo_max,
-                flips, n_flips, row_lo=0, row_hi=-1):
+                flips, n_flips, row_lo=0, row_hi=-1, row_offset=0):
     """Insert rays from (ox, oy) to ``ends`` (M, 2), all in cell units (continuous, lower-left origin).
 
     Endpoints with ``is_hit`` get one hit update per scan even when several rays end in the
@@ -41,10 +41,13 @@ def insert_rays(logodds, prob, stamp, scan_id, ox, oy, ends, is_hit, hit_delta, 
     ``n_flips[0]``, which may exceed the buffer: then the caller recomputes what depends on it). Rays whose
     ``is_hit`` is False mark free space along the whole ray, the end cell included.
     Cells outside the grid, or outside rows [row_lo, row_hi) when given, are skipped.
+    ``row_offset``: the arrays hold only rows [row_offset, row_offset + their rows) of a larger
+    grid whose cell units ``ends`` and the origin are in (a map built one band of rows at a time);
+    a ray that crosses none of those rows is not traced.
     """
-    rows, cols = logodds.shape
-    r_lo = max(row_lo, 0)
-    r_hi = rows if row_hi < 0 else min(row_hi, rows)
+    n_rows, cols = logodds.shape
+    r_lo = max(row_lo, row_offset)
+    r_hi = row_offset + n_rows if row_hi < 0 else min(row_hi, row_offset + n_rows)
     m = ends.shape[0]
     nf = 0
     cap = flips.shape[0]
@@ -53,7 +56,7 @@ def insert_rays(logodds, prob, stamp, scan_id, ox, oy, ends, is_hit, hit_delta, 
             c = int(math.floor(ends[i, 0]))
             r = int(math.floor(ends[i, 1]))
             if r_lo <= r < r_hi and 0 <= c < cols:
-                if _apply(logodds, prob, stamp, r, c, scan_id, hit_delta, lo_min, lo_max):
+                if _apply(logodds, prob, stamp, r - row_offset, c, scan_id, hit_delta, lo_min, lo_max):
                     if nf < cap:
                         flips[nf, 0] = r
                         flips[nf, 1] = c
@@ -68,6 +71,8 @@ def insert_rays(logodds, prob, stamp, scan_id, ox, oy, ends, is_hit, hit_delta, 
         cy = cy0
         tx = int(math.floor(ex))
         ty = int(math.floor(ey))
+        if (ty < r_lo and cy0 < r_lo) or (ty >= r_hi and cy0 >= r_hi):
+            continue  # the ray's cells lie in rows from cy0 to ty: none of them in this band
         dx = ex - ox
         dy = ey - oy
         step_x = 1 if dx > 0 else -1
@@ -88,17 +93,18 @@ def insert_rays(logodds, prob, stamp, scan_id, ox, oy, ends, is_hit, hit_delta, 
         n_steps = abs(tx - cx) + abs(ty - cy)
         for _ in range(n_steps):
             # ``_apply`` written out: calling it here (inline="always") made insertion 1.6x slower
-            if r_lo <= cy < r_hi and 0 <= cx < cols and stamp[cy, cx] != scan_id:
-                stamp[cy, cx] = scan_id  # a cell is known once any scan updated it
-                old = logodds[cy, cx]
+            ry = cy - row_offset
+            if r_lo <= cy < r_hi and 0 <= cx < cols and stamp[ry, cx] != scan_id:
+                stamp[ry, cx] = scan_id  # a cell is known once any scan updated it
+                old = logodds[ry, cx]
                 v = old + miss_delta
                 if v < lo_min:
                     v = lo_min
                 elif v > lo_max:
                     v = lo_max
                 if v != old:  # most misses land on cells already at the clamp
-                    logodds[cy, cx] = v
-                    prob[cy, cx] = 1.0 / (1.0 + math.exp(-v))
+                    logodds[ry, cx] = v
+                    prob[ry, cx] = 1.0 / (1.0 + math.exp(-v))
                     if (old > 0.0) != (v > 0.0):
                         if nf < cap:
                             flips[nf, 0] = cy
@@ -111,7 +117,7 @@ def insert_rays(logodds, prob, stamp, scan_id, ox, oy, ends, is_hit, hit_delta, 
                 t_max_y += t_delta_y
                 cy += step_y
         if not is_hit[i] and r_lo <= ty < r_hi and 0 <= tx < cols:
-            if _apply(logodds, prob, stamp, ty, tx, scan_id, miss_delta, lo_min, lo_max):
+            if _apply(logodds, prob, stamp, ty - row_offset, tx, scan_id, miss_delta, lo_min, lo_max):
                 if nf < cap:
                     flips[nf, 0] = ty
                     flips[nf, 1] = tx
@@ -222,17 +228,18 @@ def insert_rays_pair(lo_a, prob_a, stamp_a, id_a, ox_a, oy_a, ends_a, flips_a, n
 
 @njit(cache=True, nogil=True, parallel=True)
 def insert_scans_striped(logodds, prob, stamp, first_id, origins, ends, starts, n_hits, hit_delta, miss_delta,
-                         lo_min, lo_max, n_stripes):
+                         lo_min, lo_max, n_stripes, row_offset=0):
     """Insert many scans, in order, into one grid: scan s has rays from ``origins[s]`` to
     ``ends[starts[s]:starts[s+1]]``, its first ``n_hits[s]`` ends being hits, and scan id
     ``first_id + s``. The rows are cut into ``n_stripes`` bands, one per thread; every thread
-    traces every ray but updates only its own rows, so each cell sees the same updates in the
-    same order as with ``insert_rays`` one scan at a time (the result is identical)."""
+    traces every ray that reaches its rows but updates only those, so each cell sees the same
+    updates in the same order as with ``insert_rays`` one scan at a time (the result is
+    identical). ``row_offset``: the arrays are rows [row_offset, …) of a larger grid (``insert_rays``)."""
     rows = logodds.shape[0]
     n_scans = origins.shape[0]
     for k in prange(n_stripes):
-        r0 = rows * k // n_stripes
-        r1 = rows * (k + 1) // n_stripes
+        r0 = row_offset + rows * k // n_stripes
+        r1 = row_offset + rows * (k + 1) // n_stripes
         no_flips = np.empty((0, 2), dtype=np.int32)
         count = np.zeros(1, dtype=np.int64)
         for sc in range(n_scans):
@@ -241,4 +248,4 @@ def insert_scans_striped(logodds, prob, stamp, first_id, origins, ends, starts, 
             is_hit = np.zeros(b - a, dtype=np.bool_)
             is_hit[:n_hits[sc]] = True
             insert_rays(logodds, prob, stamp, first_id + sc, origins[sc, 0], origins[sc, 1], ends[a:b], is_hit,
-                        hit_delta, miss_delta, lo_min, lo_max, no_flips, count, r0, r1)
+                        hit_delta, miss_delta, lo_min, lo_max, no_flips, count, r0, r1, row_offset)

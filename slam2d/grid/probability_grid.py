@@ -117,12 +117,17 @@ class ProbabilityGrid:
                 setattr(self, name, new)
             self.origin = self.origin - np.array([add_left * res, add_bottom * res])
         else:
-            m = self.GROW_MARGIN
-            self.origin = np.array([math.floor(xmin / res) - m, math.floor(ymin / res) - m], dtype=float) * res
-            shape = (int(math.floor(ymax / res) - math.floor(ymin / res)) + 2 * m + 1,
-                     int(math.floor(xmax / res) - math.floor(xmin / res)) + 2 * m + 1)
+            self.origin, shape = self._frame_for(xmin, ymin, xmax, ymax)
             for name, dtype, fill in self._arrays():
                 setattr(self, name, np.full(shape, fill, dtype=dtype))
+
+    def _frame_for(self, xmin, ymin, xmax, ymax):
+        """(origin, shape) of an empty grid's first extent around the box (``GROW_MARGIN`` beyond it)."""
+        res, m = self.resolution, self.GROW_MARGIN
+        origin = np.array([math.floor(xmin / res) - m, math.floor(ymin / res) - m], dtype=float) * res
+        shape = (int(math.floor(ymax / res) - math.floor(ymin / res)) + 2 * m + 1,
+                 int(math.floor(xmax / res) - math.floor(xmin / res)) + 2 * m + 1)
+        return origin, shape
 
     def insert(self, origin_xy, hits: np.ndarray, misses: np.ndarray | None = None):
         """Insert one scan: rays from ``origin_xy`` to hit points (N, 2) and to free-space ray ends (M, 2), grid frame."""
@@ -134,26 +139,63 @@ class ProbabilityGrid:
         The grid's rows are split among threads (``insert_scans_striped``); the result is
         identical to inserting the scans one at a time.
         """
-        scans = [(np.asarray(o, dtype=float), h, m) for o, h, m in scans if len(h) + len(m) > 0]
-        if not scans:
+        batch = _ScanBatch(scans)
+        if batch.empty:
             return
-        ends = np.concatenate([np.concatenate([h, m]) if len(m) else h for _, h, m in scans]).astype(np.float64)
-        origins = np.array([o for o, _, _ in scans], dtype=np.float64)
-        lo = np.minimum(ends.min(axis=0), origins.min(axis=0))
-        hi = np.maximum(ends.max(axis=0), origins.max(axis=0))
-        self.ensure_contains(lo[0], lo[1], hi[0], hi[1])
-        starts = np.zeros(len(scans) + 1, dtype=np.int64)
-        starts[1:] = np.cumsum([len(h) + len(m) for _, h, m in scans])
-        n_hits = np.array([len(h) for _, h, _ in scans], dtype=np.int64)
+        self.ensure_contains(*batch.lo, *batch.hi)
         first = self.scan_id + 1
-        self.scan_id += len(scans)
+        self.scan_id += batch.count
         n = threads or numba.get_num_threads()
-        _kernels.insert_scans_striped(self.logodds, self.prob, self.stamp, first,
-                                      np.ascontiguousarray((origins - self.origin) / self.resolution),
-                                      np.ascontiguousarray((ends - self.origin) / self.resolution), starts, n_hits,
+        o, e = batch.in_cells(self.origin, self.resolution)
+        _kernels.insert_scans_striped(self.logodds, self.prob, self.stamp, first, o, e, batch.starts, batch.n_hits,
                                       self.hit_delta, self.miss_delta, self.lo_min, self.lo_max, max(1, int(n)))
         if self.field_sigma:
             self.field = self.compute_field()
+
+    def build_finished(self, scans: list, threads: int | None = None, band_cells: int = 1 << 22):
+        """Insert many scans, in order, into this empty grid and finish it: what is kept is the
+        probability of every cell (float32, unknown cells at ``unknown_probability``, exactly what
+        ``insert_scans`` leaves in ``prob``) and the known mask, 5 bytes a cell, and no more scans
+        can be inserted. The log-odds and stamps exist for one band of rows (about ``band_cells``
+        cells) at a time, and only the scans whose rays reach a band are traced for it; every cell
+        sees the same updates in the same order as with ``insert_scans``, so the result is identical."""
+        if self.shape != (0, 0) or self.scan_id:
+            raise ValueError("build_finished needs an empty grid")
+        self.field_sigma = None
+        self.field = np.zeros((0, 0), dtype=np.float32)
+        batch = _ScanBatch(scans)
+        if batch.empty:
+            return
+        self.origin, shape = self._frame_for(*batch.lo, *batch.hi)
+        rows, cols = shape
+        prob = np.full(shape, self.unknown_probability, dtype=np.float32)
+        known = np.zeros(shape, dtype=np.uint8)
+        o, e = batch.in_cells(self.origin, self.resolution)
+        # each scan's rows, from its origin and ray ends (a ray's cells lie between them)
+        row_of = np.floor(e[:, 1]).astype(np.int64)
+        first_row = np.minimum(np.minimum.reduceat(row_of, batch.starts[:-1]), np.floor(o[:, 1]).astype(np.int64))
+        last_row = np.maximum(np.maximum.reduceat(row_of, batch.starts[:-1]), np.floor(o[:, 1]).astype(np.int64))
+        band = max(1, band_cells // max(cols, 1))
+        n = max(1, int(threads or numba.get_num_threads()))
+        for a in range(0, rows, band):
+            b = min(rows, a + band)
+            sel = np.flatnonzero((last_row >= a) & (first_row < b))
+            if sel.size == 0:
+                continue
+            sizes = batch.starts[sel + 1] - batch.starts[sel]
+            starts = np.zeros(sel.size + 1, dtype=np.int64)
+            starts[1:] = np.cumsum(sizes)
+            ray = np.repeat(batch.starts[sel] - starts[:-1], sizes) + np.arange(starts[-1])
+            logodds = np.zeros((b - a, cols), dtype=np.float32)
+            stamp = np.zeros((b - a, cols), dtype=np.int32)
+            _kernels.insert_scans_striped(logodds, prob[a:b], stamp, 1, np.ascontiguousarray(o[sel]),
+                                          np.ascontiguousarray(e[ray]), starts, batch.n_hits[sel], self.hit_delta,
+                                          self.miss_delta, self.lo_min, self.lo_max, n, a)
+            known[a:b] = stamp > 0
+        self.prob, self._known = prob, known
+        self.logodds = np.zeros((0, 0), dtype=np.float32)
+        self.stamp = np.zeros((0, 0), dtype=np.int32)
+        self.scan_id = batch.count
 
     def _prepare(self, ends: np.ndarray, origin: np.ndarray, lo: np.ndarray, hi: np.ndarray):
         """Grow to fit, advance the scan id; (ray ends in cells, origin in cells, flips buffer, flip count)."""
@@ -189,8 +231,10 @@ class ProbabilityGrid:
 
     def probability_rows(self, r0: int, r1: int, unknown_value: float = 0.5) -> np.ndarray:
         """``probability()[r0:r1]`` without converting the whole grid (a large map is exported in bands)."""
-        if self._known is not None:  # frozen: ``prob`` holds every known cell's probability × 255
-            return np.where(self._known[r0:r1] > 0, dequantize(self.prob[r0:r1]), np.float32(unknown_value)).astype(np.float32)
+        if self._known is not None:  # frozen: ``prob`` holds every known cell's probability (× 255 when uint8)
+            p = self.prob[r0:r1]
+            return np.where(self._known[r0:r1] > 0, dequantize(p) if p.dtype == np.uint8 else p,
+                            np.float32(unknown_value)).astype(np.float32)
         out = np.empty(self.logodds[r0:r1].shape, dtype=np.float32)
         if out.size:
             known = (self.stamp[r0:r1] > 0).view(np.uint8)
@@ -204,6 +248,30 @@ class ProbabilityGrid:
             return None
         cols = np.flatnonzero(self.known.any(axis=0))
         return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+
+
+class _ScanBatch:
+    """Scans ``(origin, hits, misses)`` as flat arrays: every ray end (a scan's hits first), where
+    each scan starts, its hit count, and the box holding every origin and end."""
+
+    def __init__(self, scans):
+        scans = [(np.asarray(o, dtype=float), h, m) for o, h, m in scans if len(h) + len(m) > 0]
+        self.count = len(scans)
+        self.empty = not scans
+        if self.empty:
+            return
+        self.ends = np.concatenate([np.concatenate([h, m]) if len(m) else h for _, h, m in scans]).astype(np.float64)
+        self.origins = np.array([o for o, _, _ in scans], dtype=np.float64)
+        self.lo = np.minimum(self.ends.min(axis=0), self.origins.min(axis=0))
+        self.hi = np.maximum(self.ends.max(axis=0), self.origins.max(axis=0))
+        self.starts = np.zeros(len(scans) + 1, dtype=np.int64)
+        self.starts[1:] = np.cumsum([len(h) + len(m) for _, h, m in scans])
+        self.n_hits = np.array([len(h) for _, h, _ in scans], dtype=np.int64)
+
+    def in_cells(self, origin, resolution):
+        """(origins, ends) in cell units of a grid with this origin and resolution."""
+        return (np.ascontiguousarray((self.origins - origin) / resolution),
+                np.ascontiguousarray((self.ends - origin) / resolution))
 
 
 def quantize(prob: np.ndarray) -> np.ndarray:
