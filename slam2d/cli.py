@@ -21,16 +21,28 @@ EXAMPLES = """examples:
   slam2d run ../shared/datasets/aces/aces.clf.bz2 --out runs/aces --rate 5
   slam2d info ../shared/datasets/fr079/fr079.clf.bz2 --json
   slam2d convert ../shared/datasets/aces/aces.clf.bz2 aces.mcap
+  slam2d convert ../shared/datasets/aces/aces.clf.bz2 aces.bag      # ROS 1 bag; a name without suffix: ROS 2 bag
+  slam2d run robot.bag --out runs/robot --scan-topic /scan           # ROS 1 bag, ROS 2 bag folder, .db3, .mcap
   slam2d simulate data/sim_office.mcap --seed 7
   slam2d eval relations runs/intel/trajectory.txt ../shared/datasets/intel/intel.relations
   slam2d dump-config > my.yaml
 """
 
 
+CONVERT_EXAMPLES = """examples:
+  slam2d convert ../shared/datasets/intel/intel.clf.bz2 intel.mcap      # MCAP (ROS 2 messages, CDR)
+  slam2d convert ../shared/datasets/intel/intel.clf.bz2 intel.bag       # ROS 1 bag
+  slam2d convert ../shared/datasets/intel/intel.clf.bz2 intel_ros2      # ROS 2 bag folder, MCAP storage
+  slam2d convert ../shared/datasets/intel/intel.clf.bz2 intel_db3 --storage sqlite3   # ROS 2 bag, .db3
+  slam2d convert robot.bag robot.mcap --scan-topic /front/scan          # a bag with two LaserScan topics
+"""
+
+
 def _add_input(p):
-    p.add_argument("input", help="CARMEN log (.clf/.log, plain/.gz/.bz2) or MCAP (.mcap)")
-    p.add_argument("--scan-topic", default=None, help="MCAP: LaserScan topic (default: the only one)")
-    p.add_argument("--odom-topic", default=None, help="MCAP: Odometry topic (default: the only one, if any)")
+    p.add_argument("input", help="CARMEN log (.clf/.log, plain/.gz/.bz2), MCAP (.mcap), ROS 1 bag (.bag) or "
+                   "ROS 2 bag (its folder, or its .db3/.mcap file)")
+    p.add_argument("--scan-topic", default=None, help="ROS input: LaserScan topic (default: the only one)")
+    p.add_argument("--odom-topic", default=None, help="ROS input: Odometry topic (default: the only one, if any)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -63,11 +75,14 @@ def build_parser() -> argparse.ArgumentParser:
     _add_input(p)
     p.add_argument("--json", action="store_true", help="machine-readable output")
 
-    p = sub.add_parser("convert", help="convert a log to MCAP (ROS 2 LaserScan + Odometry)",
-                       epilog="example:\n  slam2d convert ../shared/datasets/intel/intel.clf.bz2 intel.mcap",
+    p = sub.add_parser("convert", help="convert a log to MCAP, a ROS 1 bag or a ROS 2 bag (LaserScan, Odometry, "
+                       "tf_static laser mount)", epilog=CONVERT_EXAMPLES,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     _add_input(p)
-    p.add_argument("output", help="output .mcap file")
+    p.add_argument("output", help="OUT.mcap (MCAP, ROS 2 messages), OUT.bag (ROS 1 bag), or a new folder name "
+                   "without suffix (ROS 2 bag: metadata.yaml + storage file)")
+    p.add_argument("--storage", choices=("mcap", "sqlite3"), default=None,
+                   help="ROS 2 bag storage (default mcap, the ROS 2 default since Iron; sqlite3 for Humble and older)")
     p.add_argument("--no-progress", action="store_true")
 
     p = sub.add_parser("simulate", help="write the deterministic simulated dataset as MCAP",
@@ -204,31 +219,71 @@ def cmd_info(args) -> int:
     return 0
 
 
+def _bag_kind(outp: Path, storage: str | None) -> str:
+    """What `slam2d convert` writes to ``outp``: ``mcap_file``, ``ros1``, or a ROS 2 bag folder with
+    ``sqlite3`` or ``mcap`` storage."""
+    suffix = outp.suffix.lower()
+    if suffix in (".mcap", ".bag"):
+        if storage is not None:
+            raise UsageError(f"--storage applies to a ROS 2 bag folder (an output name without suffix), not {outp}")
+        return "mcap_file" if suffix == ".mcap" else "ros1"
+    if suffix:
+        raise UsageError(f"{outp}: output must end in .mcap or .bag, or be a new folder name (ROS 2 bag)")
+    if outp.exists():
+        raise UsageError(f"{outp}: exists; a ROS 2 bag is written to a new folder")
+    return storage or "mcap"
+
+
 def cmd_convert(args) -> int:
     import os
-
-    from slam2d.io.mcap import McapWriter
+    import shutil
 
     outp = Path(args.output)
-    if outp.suffix.lower() != ".mcap":
-        raise UsageError(f"{outp}: output must end in .mcap")
+    kind = _bag_kind(outp, args.storage)
     src = _source(args)
     total = src.num_scans() if hasattr(src, "num_scans") else None
-    tmp = Path(f"{outp}.partial")
+    # written under a temporary name, renamed only when complete; a ROS 2 bag folder is built
+    # inside a staging folder so that its files already carry the final name
+    staging = outp.parent / f".{outp.name}.partial" if kind in ("sqlite3", "mcap") else None
+    tmp = staging / outp.name if staging else Path(f"{outp}.partial")
     n = 0
+    f = None
     try:
-        with open(tmp, "wb") as f, _progress(total, args.no_progress, "convert") as bar:
+        if staging:
+            shutil.rmtree(staging, ignore_errors=True)
+            staging.mkdir(parents=True)
+        else:
+            tmp.unlink(missing_ok=True)
+        if kind == "mcap_file":
+            from slam2d.io.mcap import McapWriter
+
+            f = open(tmp, "wb")
             w = McapWriter(f)
+        else:
+            from slam2d.io.rosbag import RosbagWriter
+
+            w = RosbagWriter(tmp, kind)
+        with _progress(total, args.no_progress, "convert") as bar:
             for scan in src:
                 w.write_scan(scan)
                 n += 1
                 bar.update(1)
-            w.finish()
+        w.finish()
+        if f is not None:
+            f.close()
         os.replace(tmp, outp)
     except BaseException:
-        tmp.unlink(missing_ok=True)
+        if f is not None:
+            f.close()
+        if staging:
+            shutil.rmtree(staging, ignore_errors=True)
+        else:
+            tmp.unlink(missing_ok=True)
         raise
-    print(f"{n} scans -> {outp}")
+    if staging:
+        staging.rmdir()
+    what = {"mcap_file": "MCAP", "ros1": "ROS 1 bag"}.get(kind, f"ROS 2 bag, {kind} storage")
+    print(f"{n} scans -> {outp} ({what})")
     return 0
 
 

@@ -1,69 +1,28 @@
 """MCAP (ROS 2 profile) reading and writing: ``sensor_msgs/msg/LaserScan`` in,
 ``nav_msgs/msg/Odometry`` for wheel odometry, ``geometry_msgs/msg/PoseStamped`` for ground
-truth, ``tf2_msgs/msg/TFMessage`` on ``/tf_static`` for the laser mount. CDR encoding via
-``mcap_ros2``; Foxglove and ROS 2 tools open what this writes.
+truth, ``tf2_msgs/msg/TFMessage`` on ``/tf_static`` and ``/tf`` for the laser mount (the TF
+chain from the odometry's child frame to the scan's ``header.frame_id``, `slam2d.io.tf_tree`).
+CDR encoding via ``mcap_ros2``; Foxglove and ROS 2 tools open what this writes.
 """
 from __future__ import annotations
 
-import bisect
 import math
 from pathlib import Path
 
 import numpy as np
 
 from slam2d.errors import InputError
-from slam2d.geometry import interpolate_pose, quaternion_to_yaw
-from slam2d.io.ros2_msgs import msgdef, stamp_from_text, stamp_text
+from slam2d.io.ros2_msgs import msgdef, stamp_from_text
+from slam2d.io.ros_input import (GROUND_TRUTH_TOPIC, TF_TYPES, PoseTrack, ScanConverter, add_pose,
+                                 choose_topics)
+from slam2d.io.tf_tree import TfTree, laser_mount
 from slam2d.types import Scan
-
-SCAN_TYPES = ("sensor_msgs/msg/LaserScan", "sensor_msgs/LaserScan")
-ODOM_TYPES = ("nav_msgs/msg/Odometry", "nav_msgs/Odometry")
-POSE_TYPES = ("geometry_msgs/msg/PoseStamped", "geometry_msgs/PoseStamped")
-TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf2_msgs/TFMessage")
-GROUND_TRUTH_TOPIC = "/ground_truth"
 
 
 def _mcap_errors():
     from mcap.exceptions import McapError
 
     return (McapError, ValueError, KeyError, EOFError, OSError, IndexError, AssertionError)
-
-
-def _yaw(q) -> float:
-    return float(quaternion_to_yaw(q.x, q.y, q.z, q.w))
-
-
-def _stamp(header) -> tuple[float, str]:
-    s, ns = int(header.stamp.sec), int(header.stamp.nanosec)
-    return s + ns * 1e-9, stamp_text(s, ns)
-
-
-class _Track:
-    """Stamped poses, interpolated at query times."""
-
-    def __init__(self):
-        self.t: list[float] = []
-        self.p: list[np.ndarray] = []
-
-    def add(self, t, pose):
-        if self.t and t < self.t[-1]:
-            i = bisect.bisect(self.t, t)
-            self.t.insert(i, t)
-            self.p.insert(i, pose)
-        else:
-            self.t.append(t)
-            self.p.append(pose)
-
-    def __bool__(self):
-        return bool(self.t)
-
-    def at(self, t) -> np.ndarray:
-        i = bisect.bisect_left(self.t, t)
-        if i <= 0:
-            return self.p[0].copy()
-        if i >= len(self.t):
-            return self.p[-1].copy()
-        return interpolate_pose(t, self.t[i - 1], self.p[i - 1], self.t[i], self.p[i])
 
 
 class McapLog:
@@ -73,7 +32,9 @@ class McapLog:
         self.path = Path(path)
         if not self.path.exists():
             raise InputError(self.path, "no such file")
-        self.scan_topic, self.odom_topic, self.gt_topic, self.topics = self._detect(scan_topic, odom_topic)
+        self.topics = self._topics()
+        self.scan_topic, self.odom_topic, self.gt_topic = choose_topics(self.path, self.topics, scan_topic, odom_topic)
+        self._tracks_cache = None  # read once: a second pass (results.mcap) warns about the mount only once
 
     def _reader(self, f):
         from mcap.reader import make_reader
@@ -81,7 +42,7 @@ class McapLog:
 
         return make_reader(f, decoder_factories=[DecoderFactory()])
 
-    def _detect(self, scan_topic, odom_topic):
+    def _summary(self):
         try:
             with open(self.path, "rb") as f:
                 summary = self._reader(f).get_summary()
@@ -89,61 +50,47 @@ class McapLog:
             raise InputError(self.path, f"not a readable MCAP file ({type(e).__name__}: {e})") from None
         if summary is None:
             raise InputError(self.path, "MCAP file has no summary section (unindexed or truncated); re-save it with `mcap recover`")
+        return summary
+
+    def _topics(self) -> dict[str, str]:
+        summary = self._summary()
         topics = {}
         for ch in summary.channels.values():
             sch = summary.schemas.get(ch.schema_id)
             topics[ch.topic] = sch.name if sch else ""
-        listing = ", ".join(f"{t} [{n}]" for t, n in sorted(topics.items())) or "none"
-
-        def pick(given, types, what, required):
-            if given is not None:
-                if given not in topics:
-                    raise InputError(self.path, f"no topic {given!r} (topics: {listing})")
-                if topics[given] not in types:
-                    raise InputError(self.path, f"topic {given!r} is {topics[given]}, not {types[0]}")
-                return given
-            found = sorted(t for t, n in topics.items() if n in types)
-            if what == "pose":
-                return GROUND_TRUTH_TOPIC if GROUND_TRUTH_TOPIC in found else None
-            if not found:
-                if required:
-                    raise InputError(self.path, f"no {types[0]} topic (topics: {listing})")
-                return None
-            if len(found) > 1:
-                raise InputError(self.path, f"several {types[0]} topics ({', '.join(found)}); choose one with --{what}-topic")
-            return found[0]
-
-        return (pick(scan_topic, SCAN_TYPES, "scan", True), pick(odom_topic, ODOM_TYPES, "odom", False),
-                pick(None, POSE_TYPES, "pose", False), topics)
+        return topics
 
     def num_scans(self) -> int | None:
-        with open(self.path, "rb") as f:
-            summary = self._reader(f).get_summary()
-        if summary is None or summary.statistics is None:
+        summary = self._summary()
+        if summary.statistics is None:
             return None
         ids = [cid for cid, ch in summary.channels.items() if ch.topic == self.scan_topic]
         return sum(summary.statistics.channel_message_counts.get(i, 0) for i in ids)
 
     def _tracks(self):
-        odom, gt, mount = _Track(), _Track(), None
+        """Odometry and ground-truth tracks, the TF tree, the odometry's child frame, the scan frame."""
+        odom, gt, tree = PoseTrack(), PoseTrack(), TfTree()
+        base = scan_frame = None
         wanted = [t for t in (self.odom_topic, self.gt_topic) if t]
-        tf_topics = [t for t, n in self.topics.items() if n in TF_TYPES and t == "/tf_static"]
-        if not wanted and not tf_topics:
-            return odom, gt, mount
+        tf_topics = [t for t, n in self.topics.items() if n in TF_TYPES]
         with open(self.path, "rb") as f:
-            for k, (_sch, ch, _msg, m) in enumerate(self._reader(f).iter_decoded_messages(topics=wanted + tf_topics)):
+            reader = self._reader(f)
+            for _sch, _ch, _msg, m in reader.iter_decoded_messages(topics=[self.scan_topic]):
+                scan_frame = m.header.frame_id or None
+                break
+            for k, (_sch, ch, _msg, m) in enumerate(reader.iter_decoded_messages(topics=wanted + tf_topics)
+                                                    if wanted + tf_topics else ()):
                 if ch.topic in tf_topics:
-                    for tr in m.transforms:
-                        if tr.child_frame_id.lstrip("/") in ("laser", "base_scan", "laser_frame"):
-                            mount = np.array([tr.transform.translation.x, tr.transform.translation.y, _yaw(tr.transform.rotation)])
-                    continue
-                t, _ = _stamp(m.header)
-                pose = m.pose.pose if ch.topic == self.odom_topic else m.pose
-                p = np.array([pose.position.x, pose.position.y, _yaw(pose.orientation)])
-                if not np.all(np.isfinite(p)):
-                    raise InputError(self.path, f"non-finite pose on {ch.topic}", record=k)
-                (odom if ch.topic == self.odom_topic else gt).add(t, p)
-        return odom, gt, mount
+                    try:
+                        tree.add_message(m, static=ch.topic.lstrip("/") == "tf_static")
+                    except ValueError as e:
+                        raise InputError(self.path, f"bad transform on {ch.topic}: {e}", record=k) from None
+                elif ch.topic == self.odom_topic:
+                    base = base or m.child_frame_id or None
+                    add_pose(odom, self.path, k, ch.topic, m.header, m.pose.pose)
+                else:
+                    add_pose(gt, self.path, k, ch.topic, m.header, m.pose)
+        return odom, gt, laser_mount(tree, scan_frame, base, self.path)
 
     def __iter__(self):
         try:
@@ -154,27 +101,13 @@ class McapLog:
             raise InputError(self.path, f"corrupt MCAP data ({type(e).__name__}: {e})") from None
 
     def _iter(self):
-        odom, gt, mount = self._tracks()
-        prev_t = None
+        if self._tracks_cache is None:
+            self._tracks_cache = self._tracks()
+        odom, gt, mount = self._tracks_cache
+        convert = ScanConverter(self.path, mount, odom, gt)
         with open(self.path, "rb") as f:
             for k, (_sch, _ch, _msg, m) in enumerate(self._reader(f).iter_decoded_messages(topics=[self.scan_topic])):
-                t, text = _stamp(m.header)
-                r = np.asarray(m.ranges, dtype=np.float32)
-                if r.size == 0:
-                    raise InputError(self.path, "LaserScan with no ranges", record=k)
-                if not (m.angle_increment != 0 and math.isfinite(m.angle_increment)):
-                    raise InputError(self.path, f"LaserScan angle_increment is {m.angle_increment}", record=k)
-                if prev_t is not None and t < prev_t - 1.0:
-                    raise InputError(self.path, f"scan stamp {text} goes back {prev_t - t:.3f} s", record=k)
-                prev_t = t if prev_t is None else max(prev_t, t)
-                with np.errstate(invalid="ignore"):
-                    if np.any(r < 0):
-                        raise InputError(self.path, "negative range reading", record=k)
-                inten = np.asarray(m.intensities, dtype=np.float32) if len(m.intensities) == r.size else None
-                yield Scan.from_ranges(t, r, m.angle_min, m.angle_increment, m.range_max,
-                                       odom_pose=odom.at(t) if odom else None, range_min=m.range_min,
-                                       laser_offset=mount, intensities=inten, timestamp_text=text, index=k,
-                                       ground_truth=gt.at(t) if gt else None)
+                yield convert(k, m)
 
 
 # ------------------------------------------------------------------ writing
@@ -182,9 +115,30 @@ def _header(sec, nsec, frame):
     return {"stamp": {"sec": sec, "nanosec": nsec}, "frame_id": frame}
 
 
+def _neighbours(x: float, k: int) -> list[float]:
+    """x and the k floats on either side of it, nearest first."""
+    out, up, down = [x], x, x
+    for _ in range(k):
+        up, down = math.nextafter(up, math.inf), math.nextafter(down, -math.inf)
+        out += [up, down]
+    return out
+
+
+def yaw_quaternion(theta: float) -> tuple[float, float]:
+    """(z, w) of a rotation by ``theta`` about z: sin/cos of θ/2, moved by at most a few ulps so
+    that 2·atan2(z, w) gives ``theta`` back exactly (`slam2d.io.ros_input.yaw_of`)."""
+    z, w = math.sin(theta / 2), math.cos(theta / 2)
+    for zz in _neighbours(z, 4):
+        for ww in _neighbours(w, 4):
+            if 2.0 * math.atan2(zz, ww) == theta:
+                return zz, ww
+    return z, w
+
+
 def _pose_dict(p):
+    z, w = yaw_quaternion(float(p[2]))
     return {"position": {"x": float(p[0]), "y": float(p[1]), "z": 0.0},
-            "orientation": {"x": 0.0, "y": 0.0, "z": math.sin(p[2] / 2), "w": math.cos(p[2] / 2)}}
+            "orientation": {"x": 0.0, "y": 0.0, "z": z, "w": w}}
 
 
 def _stamp_of(scan: Scan) -> tuple[int, int]:
@@ -192,6 +146,43 @@ def _stamp_of(scan: Scan) -> tuple[int, int]:
         return stamp_from_text(scan.timestamp_text)
     ns = round(scan.timestamp * 1e9)
     return ns // 1_000_000_000, ns % 1_000_000_000
+
+
+def scan_messages(scan: Scan, with_mount: bool, scan_topic: str = "/scan", odom_topic: str = "/odom"):
+    """(topic, type, fields, sec, nanosec) of the messages that carry one scan: ``/tf_static``
+    base_link → laser (``with_mount``: before the first scan), the LaserScan, its Odometry and
+    ground truth when it has them. Every bag and MCAP writer of slam2d writes these."""
+    sec, nsec = _stamp_of(scan)
+    if with_mount:
+        off = scan.laser_offset
+        yield "/tf_static", "tf2_msgs/TFMessage", {"transforms": [{
+            "header": _header(sec, nsec, "base_link"), "child_frame_id": "laser",
+            "transform": {"translation": {"x": float(off[0]), "y": float(off[1]), "z": 0.0},
+                          "rotation": _pose_dict(off)["orientation"]}}]}, sec, nsec
+    n = scan.num_beams
+    # readings the source marks as no-return lie above range_max, as ROS expects
+    rmax = float(scan.range_max)
+    if scan.no_return is not None:
+        finite_no_return = scan.ranges[scan.no_return & np.isfinite(scan.ranges)]
+        if finite_no_return.size:
+            rmax = min(rmax, float(np.nextafter(np.float32(finite_no_return.min()), np.float32(0))))
+    yield scan_topic, "sensor_msgs/LaserScan", {
+        "header": _header(sec, nsec, "laser"),
+        "angle_min": scan.angle_min, "angle_max": scan.angle_min + (n - 1) * scan.angle_increment,
+        "angle_increment": scan.angle_increment, "time_increment": 0.0, "scan_time": 0.0,
+        "range_min": scan.range_min, "range_max": rmax,
+        "ranges": scan.ranges.astype(np.float32).tolist(),
+        "intensities": [] if scan.intensities is None else scan.intensities.astype(np.float32).tolist(),
+    }, sec, nsec
+    if scan.odom_pose is not None:
+        yield odom_topic, "nav_msgs/Odometry", {
+            "header": _header(sec, nsec, "odom"), "child_frame_id": "base_link",
+            "pose": {"pose": _pose_dict(scan.odom_pose), "covariance": [0.0] * 36},
+            "twist": {"twist": {"linear": {"x": 0.0, "y": 0.0, "z": 0.0}, "angular": {"x": 0.0, "y": 0.0, "z": 0.0}},
+                      "covariance": [0.0] * 36}}, sec, nsec
+    if scan.ground_truth is not None:
+        yield GROUND_TRUTH_TOPIC, "geometry_msgs/PoseStamped", {"header": _header(sec, nsec, "map"),
+                                                                "pose": _pose_dict(scan.ground_truth)}, sec, nsec
 
 
 class McapWriter:
@@ -222,37 +213,10 @@ class McapWriter:
         self._seq += 1
 
     def write_scan(self, scan: Scan):
-        sec, nsec = _stamp_of(scan)
-        if not self._mount_written:
-            self._mount_written = True
-            off = scan.laser_offset
-            self.write("/tf_static", "tf2_msgs/TFMessage", {"transforms": [{
-                "header": _header(sec, nsec, "base_link"), "child_frame_id": "laser",
-                "transform": {"translation": {"x": float(off[0]), "y": float(off[1]), "z": 0.0},
-                              "rotation": _pose_dict(off)["orientation"]}}]}, sec, nsec)
-        n = scan.num_beams
-        # readings the source marks as no-return lie above range_max, as ROS expects
-        rmax = float(scan.range_max)
-        if scan.no_return is not None:
-            finite_no_return = scan.ranges[scan.no_return & np.isfinite(scan.ranges)]
-            if finite_no_return.size:
-                rmax = min(rmax, float(np.nextafter(np.float32(finite_no_return.min()), np.float32(0))))
-        self.write(self.scan_topic, "sensor_msgs/LaserScan", {
-            "header": _header(sec, nsec, "laser"),
-            "angle_min": scan.angle_min, "angle_max": scan.angle_min + (n - 1) * scan.angle_increment,
-            "angle_increment": scan.angle_increment, "time_increment": 0.0, "scan_time": 0.0,
-            "range_min": scan.range_min, "range_max": rmax,
-            "ranges": scan.ranges.astype(np.float32).tolist(),
-            "intensities": [] if scan.intensities is None else scan.intensities.astype(np.float32).tolist(),
-        }, sec, nsec)
-        if scan.odom_pose is not None:
-            self.write(self.odom_topic, "nav_msgs/Odometry", {
-                "header": _header(sec, nsec, "odom"), "child_frame_id": "base_link",
-                "pose": {"pose": _pose_dict(scan.odom_pose), "covariance": [0.0] * 36},
-                "twist": {"twist": {"linear": {"x": 0.0, "y": 0.0, "z": 0.0}, "angular": {"x": 0.0, "y": 0.0, "z": 0.0}},
-                          "covariance": [0.0] * 36}}, sec, nsec)
-        if scan.ground_truth is not None:
-            self.write_pose(GROUND_TRUTH_TOPIC, scan.ground_truth, sec, nsec, "map")
+        for topic, type_name, msg, sec, nsec in scan_messages(scan, not self._mount_written, self.scan_topic,
+                                                              self.odom_topic):
+            self.write(topic, type_name, msg, sec, nsec)
+        self._mount_written = True
 
     def write_pose(self, topic, pose, sec, nsec, frame="map"):
         self.write(topic, "geometry_msgs/PoseStamped", {"header": _header(sec, nsec, frame), "pose": _pose_dict(pose)}, sec, nsec)

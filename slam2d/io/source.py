@@ -1,4 +1,9 @@
-"""``open_source(path)``: the right reader for a file, chosen by its name."""
+"""``open_source(path)``: the right reader for a log, chosen by its name.
+
+CARMEN logs (``.clf``/``.log``/``.carmen``, plain or ``.gz``/``.bz2``) → `slam2d.io.carmen`;
+``.mcap`` (a plain MCAP or the storage file of a ROS 2 bag) → `slam2d.io.mcap`; a ROS 1
+``.bag``, a ROS 2 bag folder (with ``metadata.yaml``) or its ``.db3`` → `slam2d.io.rosbag`.
+"""
 from __future__ import annotations
 
 from pathlib import Path
@@ -7,34 +12,52 @@ from slam2d.errors import InputError
 
 CARMEN_SUFFIXES = (".clf", ".log", ".carmen")
 COMPRESSION = (".gz", ".bz2")
+KNOWN = ("expected a CARMEN log (.clf, .log, optionally .gz/.bz2), an MCAP file (.mcap), a ROS 1 bag (.bag) "
+         "or a ROS 2 bag (its folder with metadata.yaml, or its .db3/.mcap file)")
 
 
 def source_kind(path: str | Path) -> str:
-    name = Path(path).name.lower()
+    """``carmen``, ``mcap`` or ``rosbag``."""
+    p = Path(path)
+    if p.is_dir():
+        if (p / "metadata.yaml").exists():
+            return "rosbag"
+        raise InputError(path, f"a folder without metadata.yaml is not a ROS 2 bag; {KNOWN}")
+    name = p.name.lower()
     for c in COMPRESSION:
         if name.endswith(c):
             name = name[: -len(c)]
             break
+    if name.endswith((".mcap", ".bag", ".db3")) and name != p.name.lower():
+        raise InputError(path, "compressed bags are not supported (bags compress their own chunks); decompress it first")
     if name.endswith(".mcap"):
-        if name != Path(path).name.lower():
-            raise InputError(path, "compressed MCAP is not supported (MCAP compresses its own chunks); decompress it first")
         return "mcap"
+    if name.endswith(".bag"):
+        return "rosbag"
+    if name.endswith(".db3"):
+        if not (p.parent / "metadata.yaml").exists():
+            raise InputError(path, "a .db3 file is read with its bag's metadata.yaml, which is not beside it")
+        return "rosbag"
     if name.endswith(CARMEN_SUFFIXES):
         return "carmen"
-    raise InputError(path, "unknown file type: expected a CARMEN log (.clf, .log, optionally .gz/.bz2) or an MCAP file (.mcap)")
+    raise InputError(path, f"unknown file type: {KNOWN}")
 
 
 def open_source(path: str | Path, scan_topic: str | None = None, odom_topic: str | None = None):
-    """An iterable of `Scan` for a log file (lazy; errors name the file and line or record)."""
-    kind = source_kind(path)
+    """An iterable of `Scan` for a log (lazy; errors name the file and line or record)."""
     if not Path(path).exists():
         raise InputError(path, "no such file")
+    kind = source_kind(path)
     if kind == "mcap":
         from slam2d.io.mcap import McapLog
 
         return McapLog(path, scan_topic=scan_topic, odom_topic=odom_topic)
+    if kind == "rosbag":
+        from slam2d.io.rosbag import RosbagLog
+
+        return RosbagLog(path, scan_topic=scan_topic, odom_topic=odom_topic)
     if scan_topic or odom_topic:
-        raise InputError(path, "--scan-topic/--odom-topic apply to MCAP input only")
+        raise InputError(path, "--scan-topic/--odom-topic apply to ROS input (MCAP, bags) only")
     from slam2d.io.carmen import CarmenLog
 
     return CarmenLog(path)

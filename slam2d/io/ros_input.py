@@ -1,0 +1,169 @@
+"""What the ROS readers (MCAP in `slam2d.io.mcap`, rosbags in `slam2d.io.rosbag`) share: topics
+chosen by message type, stamped pose tracks interpolated to scan times, and decoded
+``sensor_msgs/LaserScan`` messages turned into `Scan` records (REP 117 semantics, via
+`Scan.from_ranges`) with the checks that name the file and record of a bad message.
+"""
+from __future__ import annotations
+
+import bisect
+import functools
+import math
+
+import numpy as np
+
+from slam2d.errors import InputError
+from slam2d.geometry import interpolate_pose, quaternion_to_yaw
+from slam2d.io.ros2_msgs import stamp_text
+from slam2d.types import Scan
+
+SCAN_TYPES = ("sensor_msgs/msg/LaserScan", "sensor_msgs/LaserScan")
+ODOM_TYPES = ("nav_msgs/msg/Odometry", "nav_msgs/Odometry")
+POSE_TYPES = ("geometry_msgs/msg/PoseStamped", "geometry_msgs/PoseStamped")
+TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf2_msgs/TFMessage", "tf/msg/tfMessage", "tf/tfMessage")
+GROUND_TRUTH_TOPIC = "/ground_truth"
+#: a scan stamped earlier than the latest one by more than this [s] is an error
+MAX_TIME_REVERSAL = 1.0
+
+
+def stamp(header) -> tuple[float, str]:
+    """(seconds, exact decimal text) of a header stamp; the float is the text's correctly rounded
+    value, as a CARMEN log's stamp is, so a converted log gives bit-identical times."""
+    text = stamp_text(int(header.stamp.sec), int(header.stamp.nanosec))
+    return float(text), text
+
+
+def yaw_of(q) -> float:
+    """Yaw of a quaternion. A rotation about z alone (x = y = 0) is 2·atan2(z, w), the exact inverse
+    of the half-angle encoding `slam2d.io.mcap.yaw_quaternion` writes (bit-identical round trip)."""
+    if q.x == 0 and q.y == 0:
+        yaw = 2.0 * math.atan2(q.z, q.w)
+        return yaw - 2 * math.pi if yaw > math.pi else yaw + 2 * math.pi if yaw <= -math.pi else yaw
+    return float(quaternion_to_yaw(q.x, q.y, q.z, q.w))
+
+
+def pose2d(pose) -> np.ndarray:
+    """(x, y, yaw) of a ``geometry_msgs/Pose``."""
+    return np.array([pose.position.x, pose.position.y, yaw_of(pose.orientation)])
+
+
+@functools.lru_cache(maxsize=1024)
+def laser_angle(value: float, beams: int) -> float:
+    """The float64 angle a LaserScan's float32 ``angle_min`` / ``angle_increment`` was rounded from.
+
+    Drivers and logs state scan angles as a fraction of π (−π/2, π/180, π/720) or as a short
+    decimal (−1.570796, 0.017453): the first π·p/q with q ≤ 2·beams + 2 that rounds to the same
+    float32, else the shortest decimal that does. A scan written from float64 angles of either
+    kind so reads back bit-identical (a CARMEN log and its bag give the same trajectory); any
+    other value moves by less than half a float32 step."""
+    f = np.float32(value)
+    x = float(f)
+    if x == 0.0 or not math.isfinite(x):
+        return x
+    for q in range(1, 2 * beams + 3):
+        p = round(x / math.pi * q)
+        if p != 0:
+            v = math.pi * p / q
+            if np.float32(v) == f:
+                return v
+    return float(np.format_float_positional(f, unique=True))
+
+
+def choose_topics(path, topics: dict[str, str], scan_topic: str | None, odom_topic: str | None):
+    """(scan topic, odometry topic or None, ground-truth topic or None) from ``{topic: type}``:
+    the given ones after checking their type, else the only topic of each type."""
+    listing = ", ".join(f"{t} [{n}]" for t, n in sorted(topics.items())) or "none"
+
+    def pick(given, types, what, required):
+        if given is not None:
+            if given not in topics:
+                raise InputError(path, f"no topic {given!r} (topics: {listing})")
+            if topics[given] not in types:
+                raise InputError(path, f"topic {given!r} is {topics[given]}, not {types[0]}")
+            return given
+        found = sorted(t for t, n in topics.items() if n in types)
+        if not found:
+            if required:
+                raise InputError(path, f"no {types[0]} topic (topics: {listing})")
+            return None
+        if len(found) > 1:
+            raise InputError(path, f"several {types[0]} topics ({', '.join(found)}); choose one with --{what}-topic")
+        return found[0]
+
+    gt = GROUND_TRUTH_TOPIC if topics.get(GROUND_TRUTH_TOPIC) in POSE_TYPES else None
+    return pick(scan_topic, SCAN_TYPES, "scan", True), pick(odom_topic, ODOM_TYPES, "odom", False), gt
+
+
+class PoseTrack:
+    """Stamped poses (any arrival order), interpolated at query times."""
+
+    def __init__(self):
+        self.t: list[float] = []
+        self.p: list[np.ndarray] = []
+
+    def add(self, t, pose):
+        if self.t and t < self.t[-1]:
+            i = bisect.bisect(self.t, t)
+            self.t.insert(i, t)
+            self.p.insert(i, pose)
+        else:
+            self.t.append(t)
+            self.p.append(pose)
+
+    def __bool__(self):
+        return bool(self.t)
+
+    def at(self, t, occurrence: int = 0) -> np.ndarray:
+        """The pose at ``t``: a pose stamped exactly ``t`` (the ``occurrence``-th of several, in
+        arrival order, the last when there are fewer), else interpolated, else the nearest end."""
+        i = bisect.bisect_left(self.t, t)
+        if i < len(self.t) and self.t[i] == t:
+            last = bisect.bisect_right(self.t, t) - 1
+            return self.p[min(i + occurrence, last)].copy()
+        if i <= 0:
+            return self.p[0].copy()
+        if i >= len(self.t):
+            return self.p[-1].copy()
+        return interpolate_pose(t, self.t[i - 1], self.p[i - 1], self.t[i], self.p[i])
+
+
+def add_pose(track: PoseTrack, path, record: int, topic: str, header, pose) -> None:
+    """A decoded pose message's (x, y, yaw) into ``track``; a non-finite pose is an error."""
+    p = pose2d(pose)
+    if not np.all(np.isfinite(p)):
+        raise InputError(path, f"non-finite pose on {topic}", record=record)
+    track.add(stamp(header)[0], p)
+
+
+class ScanConverter:
+    """Decoded LaserScan messages, in log order, to `Scan` records (index = message number)."""
+
+    def __init__(self, path, mount: np.ndarray, odom: PoseTrack, ground_truth: PoseTrack | None = None):
+        self.path, self.mount, self.odom, self.gt = path, mount, odom, ground_truth
+        self.latest: float | None = None
+        self.seen: dict[float, int] = {}  # scans per stamp so far: several scans stamped alike pair
+        # with the poses stamped alike in order (a log whose stamps repeat, converted to a bag)
+
+    def __call__(self, k: int, m) -> Scan:
+        t, text = stamp(m.header)
+        r = np.asarray(m.ranges, dtype=np.float32)
+        if r.size == 0:
+            raise InputError(self.path, "LaserScan with no ranges", record=k)
+        if not (m.angle_increment != 0 and math.isfinite(m.angle_increment)):
+            raise InputError(self.path, f"LaserScan angle_increment is {m.angle_increment}", record=k)
+        if not (math.isfinite(m.angle_min) and math.isfinite(m.range_max) and m.range_max > 0):
+            raise InputError(self.path, f"LaserScan angle_min {m.angle_min} / range_max {m.range_max} unusable",
+                             record=k)
+        if self.latest is not None and t < self.latest - MAX_TIME_REVERSAL:
+            raise InputError(self.path, f"scan stamp {text} goes back {self.latest - t:.3f} s", record=k)
+        self.latest = t if self.latest is None else max(self.latest, t)
+        with np.errstate(invalid="ignore"):
+            if np.any(r < 0):
+                raise InputError(self.path, "negative range reading", record=k)
+        inten = np.asarray(m.intensities, dtype=np.float32) if len(m.intensities) == r.size else None
+        nth = self.seen.get(t, 0)
+        self.seen[t] = nth + 1
+        return Scan.from_ranges(t, r, laser_angle(float(m.angle_min), r.size),
+                                laser_angle(float(m.angle_increment), r.size), m.range_max,
+                                odom_pose=self.odom.at(t, nth) if self.odom else None, range_min=m.range_min,
+                                laser_offset=self.mount, intensities=inten, timestamp_text=text, index=k,
+                                ground_truth=self.gt.at(t, nth) if self.gt else None)

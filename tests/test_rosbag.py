@@ -1,0 +1,193 @@
+"""ROS 1 / ROS 2 bags through rosbags: round trips, reading by name, topic choice, the TF-chain
+mount (bags and MCAP alike), and bad input as one line."""
+import logging
+import math
+
+import numpy as np
+import pytest
+
+from slam2d.cli import main
+from slam2d.errors import InputError
+from slam2d.io.mcap import McapWriter, yaw_quaternion
+from slam2d.io.ros_input import laser_angle, yaw_of
+from slam2d.io.rosbag import RosbagLog, RosbagWriter
+from slam2d.io.simulator import SimConfig, simulate
+from slam2d.io.source import open_source
+
+KINDS = {"ros1": "x.bag", "sqlite3": "x_db3", "mcap": "x_ros2"}
+
+
+def sim_scans(n, seed=3):
+    return [s for _, s in zip(range(n), simulate(SimConfig(seed=seed)))]
+
+
+def write_bag(path, scans, kind):
+    w = RosbagWriter(path, kind)
+    for s in scans:
+        w.write_scan(s)
+    w.finish()
+
+
+@pytest.mark.parametrize("kind", sorted(KINDS))
+def test_round_trip_is_bit_identical(tmp_path, kind):
+    scans = sim_scans(30)
+    p = tmp_path / KINDS[kind]
+    write_bag(p, scans, kind)
+    log = RosbagLog(p)
+    assert (log.scan_topic, log.odom_topic, log.gt_topic, log.num_scans()) == ("/scan", "/odom", "/ground_truth", 30)
+    back = list(log)
+    assert len(back) == 30
+    for a, b in zip(scans, back):
+        assert a.timestamp_text == b.timestamp_text and a.timestamp == b.timestamp
+        for f in ("ranges", "valid", "no_return", "odom_pose", "ground_truth", "laser_offset"):
+            np.testing.assert_array_equal(getattr(a, f), getattr(b, f), err_msg=f)
+        assert (a.angle_min, a.angle_increment) == (b.angle_min, b.angle_increment)
+
+
+def test_open_source_by_name(tmp_path):
+    scans = sim_scans(3)
+    write_bag(tmp_path / "a.bag", scans, "ros1")
+    write_bag(tmp_path / "b", scans, "sqlite3")
+    write_bag(tmp_path / "c", scans, "mcap")
+    assert isinstance(open_source(tmp_path / "a.bag"), RosbagLog)
+    assert isinstance(open_source(tmp_path / "b"), RosbagLog)
+    assert isinstance(open_source(tmp_path / "b" / "b.db3"), RosbagLog)
+    assert isinstance(open_source(tmp_path / "c"), RosbagLog)
+    from slam2d.io.mcap import McapLog
+
+    assert isinstance(open_source(tmp_path / "c" / "c.mcap"), McapLog)  # a bag's MCAP file reads alone too
+    for p in ("a.bag", "b", "b/b.db3", "c", "c/c.mcap"):
+        assert [s.timestamp_text for s in open_source(tmp_path / p)] == [s.timestamp_text for s in scans]
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InputError, match="without metadata.yaml"):
+        open_source(tmp_path / "empty")
+    (tmp_path / "lone.db3").write_bytes(b"")
+    with pytest.raises(InputError, match="metadata.yaml"):
+        open_source(tmp_path / "lone.db3")
+
+
+def _scan_msg(frame, sec, ranges=(1.0, 2.0, 3.0), inc=0.1):
+    return {"header": {"stamp": {"sec": sec, "nanosec": 0}, "frame_id": frame}, "angle_min": -0.1,
+            "angle_max": 0.1, "angle_increment": inc, "range_min": 0.1, "range_max": 10.0, "ranges": list(ranges)}
+
+
+def _tf(parent, child, x, yaw, sec=0):
+    z, w = yaw_quaternion(yaw)
+    return {"header": {"stamp": {"sec": sec, "nanosec": 0}, "frame_id": parent}, "child_frame_id": child,
+            "transform": {"translation": {"x": x, "y": 0.0, "z": 0.0}, "rotation": {"z": z, "w": w}}}
+
+
+def _odom(sec, x, child="base_footprint"):
+    return {"header": {"stamp": {"sec": sec, "nanosec": 0}, "frame_id": "odom"}, "child_frame_id": child,
+            "pose": {"pose": {"position": {"x": x}, "orientation": {"w": 1.0}}}}
+
+
+def _robot_bag(path, kind, static=True, scan_topics=("/scan",), frame="lidar_link"):
+    """A bag as a robot records it: odometry of base_footprint, the laser two fixed transforms away."""
+    w = RosbagWriter(path, kind)
+    tf_topic = "/tf_static" if static else "/tf"
+    for sec in range(1, 4):
+        if sec == 1 or not static:
+            w.write(tf_topic, "tf2_msgs/TFMessage", {"transforms": [
+                _tf("base_footprint", "base_link", 0.5, 0.0, sec), _tf("base_link", "lidar_link", 0.2, math.pi / 2, sec)]},
+                sec, 0)
+        if not static:  # the moving odom -> base_footprint edge on /tf is not part of the mount
+            w.write("/tf", "tf2_msgs/TFMessage", {"transforms": [_tf("odom", "base_footprint", 0.1 * sec, 0.0, sec)]},
+                    sec, 0)
+        w.write("/odom", "nav_msgs/Odometry", _odom(sec, 0.1 * sec), sec, 0)
+        for t in scan_topics:
+            w.write(t, "sensor_msgs/LaserScan", _scan_msg(frame, sec), sec, 0)
+    w.finish()
+
+
+@pytest.mark.parametrize("kind,static", [("ros1", True), ("ros1", False), ("sqlite3", True), ("mcap", False)])
+def test_mount_from_a_chain_of_transforms(tmp_path, kind, static):
+    p = tmp_path / ("r.bag" if kind == "ros1" else "r")
+    _robot_bag(p, kind, static)
+    scans = list(open_source(p))
+    assert len(scans) == 3
+    np.testing.assert_allclose(scans[0].laser_offset, [0.7, 0.0, math.pi / 2], atol=1e-12)
+    np.testing.assert_allclose([s.odom_pose[0] for s in scans], [0.1, 0.2, 0.3])
+    np.testing.assert_allclose(scans[0].angle_increment, 0.1, rtol=1e-7)
+
+
+def test_mcap_reader_uses_the_same_tf_chain(tmp_path):
+    p = tmp_path / "robot.mcap"
+    with open(p, "wb") as f:
+        w = McapWriter(f)
+        w.write("/tf_static", "tf2_msgs/TFMessage", {"transforms": [
+            _tf("base_footprint", "base_link", 0.5, 0.0), _tf("base_link", "lidar_link", 0.2, math.pi / 2)]}, 1, 0)
+        for sec in (1, 2):
+            w.write("/odom", "nav_msgs/Odometry", {**_odom(sec, 0.0), "twist": {}}, sec, 0)
+            w.write("/scan", "sensor_msgs/LaserScan", {**_scan_msg("lidar_link", sec), "time_increment": 0.0,
+                                                       "scan_time": 0.0, "intensities": []}, sec, 0)
+        w.finish()
+    (s, _) = list(open_source(p))
+    np.testing.assert_allclose(s.laser_offset, [0.7, 0.0, math.pi / 2], atol=1e-12)
+
+
+def test_no_mount_warns_and_uses_zero(tmp_path, caplog):
+    p = tmp_path / "r.bag"
+    _robot_bag(p, "ros1", frame="mystery_laser")
+    with caplog.at_level(logging.WARNING, logger="slam2d.io"):
+        scans = list(open_source(p))
+    np.testing.assert_array_equal(scans[0].laser_offset, np.zeros(3))
+    (rec,) = [r for r in caplog.records if "mount" in r.message]
+    assert "'base_footprint' to 'mystery_laser'" in rec.message and "zero laser mount" in rec.message
+
+
+def test_several_scan_topics_need_a_choice(tmp_path, capsys):
+    p = tmp_path / "two.bag"
+    _robot_bag(p, "ros1", scan_topics=("/front/scan", "/rear/scan"))
+    with pytest.raises(InputError, match=r"several sensor_msgs/msg/LaserScan topics \(/front/scan, /rear/scan\); "
+                                         "choose one with --scan-topic"):
+        open_source(p)
+    assert len(list(open_source(p, scan_topic="/rear/scan"))) == 3
+    with pytest.raises(InputError, match="is nav_msgs/msg/Odometry, not sensor_msgs"):
+        open_source(p, scan_topic="/odom")
+    assert main(["info", str(p)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "two.bag: several" in err
+    assert main(["info", str(p), "--scan-topic", "/front/scan", "--json"]) == 0
+
+
+def test_bad_bags_are_one_line(tmp_path, capsys):
+    good = tmp_path / "good.bag"
+    write_bag(good, sim_scans(20), "ros1")
+    data = good.read_bytes()
+    cases = {"garbage.bag": b"not a bag at all", "truncated.bag": data[: len(data) // 2], "empty.bag": b""}
+    for name, content in cases.items():
+        (tmp_path / name).write_bytes(content)
+        assert main(["run", str(tmp_path / name), "--out", str(tmp_path / "o"), "--no-progress"]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"slam2d: error: {tmp_path / name}") and err.count("\n") == 1, err
+        assert "Traceback" not in err
+
+
+def test_bad_laserscan_names_the_record(tmp_path):
+    p = tmp_path / "bad.bag"
+    w = RosbagWriter(p, "ros1")
+    w.write("/scan", "sensor_msgs/LaserScan", _scan_msg("laser", 1), 1, 0)
+    w.write("/scan", "sensor_msgs/LaserScan", _scan_msg("laser", 2, inc=0.0), 2, 0)
+    w.finish()
+    with pytest.raises(InputError) as e:
+        list(open_source(p))
+    assert str(e.value) == f"{p}: record 1: LaserScan angle_increment is 0.0"
+
+
+def test_yaw_and_angles_read_back_exactly():
+    rng = np.random.default_rng(5)
+    for th in [0.0, math.pi, -math.pi / 2, *rng.uniform(-math.pi, math.pi, 2000)]:
+        z, w = yaw_quaternion(th)
+        assert abs(math.hypot(z, w) - 1) < 1e-15
+
+        class Q:
+            x = y = 0.0
+
+        Q.z, Q.w = z, w
+        assert yaw_of(Q) == th
+    for n in (180, 181, 360, 361, 1081):
+        for v in (-math.pi / 2, math.pi / n, math.pi / (n - 1), -1.570796, 0.017453, -3 * math.pi / 4):
+            assert laser_angle(float(np.float32(v)), n) == v
+    odd = float(np.float32(0.0123456789))
+    assert abs(laser_angle(odd, 100) - odd) < 1e-9

@@ -1,0 +1,85 @@
+"""The TF chain helper: composed mounts against 2D composition, direction, moving edges, warnings."""
+import logging
+import math
+
+import numpy as np
+import pytest
+
+from slam2d.geometry import compose, inverse
+from slam2d.io.tf_tree import TfTree, laser_mount
+
+
+def _q(yaw, roll=0.0):
+    """(x, y, z, w) of roll about x then yaw about z."""
+    cr, sr, cy, sy = math.cos(roll / 2), math.sin(roll / 2), math.cos(yaw / 2), math.sin(yaw / 2)
+    return (sr * cy, sr * sy, cr * sy, cr * cy)
+
+
+def _add(tree, parent, child, pose, static=True, z=0.0):
+    tree.add(parent, child, (pose[0], pose[1], z), _q(pose[2]), static)
+
+
+def test_chain_of_three_matches_2d_composition():
+    rng = np.random.default_rng(4)
+    poses = [np.array([*rng.uniform(-1, 1, 2), rng.uniform(-math.pi, math.pi)]) for _ in range(3)]
+    tree = TfTree()
+    _add(tree, "base_link", "plate", poses[0])
+    _add(tree, "/plate", "mount", poses[1], z=0.3)  # a leading '/' (ROS 1) and a height change nothing
+    _add(tree, "mount", "laser", poses[2])
+    want = compose(compose(poses[0], poses[1]), poses[2])
+    np.testing.assert_allclose(tree.pose_of("laser", "base_link"), want, atol=1e-12)
+    np.testing.assert_allclose(tree.pose_of("base_link", "laser"), inverse(want), atol=1e-12)
+    np.testing.assert_array_equal(tree.pose_of("laser", "laser"), np.zeros(3))
+
+
+def test_branches_and_unconnected_frames():
+    tree = TfTree()
+    _add(tree, "base_link", "laser", (0.2, 0.0, 0.0))
+    _add(tree, "base_link", "camera", (0.1, 0.3, 1.0))
+    _add(tree, "map", "elsewhere", (5.0, 0.0, 0.0))
+    np.testing.assert_allclose(tree.pose_of("laser", "camera"), compose(inverse([0.1, 0.3, 1.0]), [0.2, 0, 0]),
+                               atol=1e-12)
+    assert tree.pose_of("laser", "map") is None
+
+
+def test_moving_tf_edge_is_not_a_mount_but_a_fixed_one_is():
+    tree = TfTree()
+    for k in range(5):
+        _add(tree, "odom", "base_link", (0.1 * k, 0.0, 0.0), static=False)  # robot motion
+        _add(tree, "base_link", "laser", (0.3, 0.0, 0.0), static=False)     # fixed, published on /tf
+    np.testing.assert_allclose(tree.pose_of("laser", "base_link"), [0.3, 0.0, 0.0])
+    assert tree.pose_of("base_link", "odom") is None
+
+
+def test_missing_mount_warns_once_and_is_zero(caplog):
+    tree = TfTree()
+    _add(tree, "base_link", "camera", (0.1, 0.0, 0.0))
+    with caplog.at_level(logging.WARNING, logger="slam2d.io"):
+        m = laser_mount(tree, "laser", "base_link", "robot.bag")
+    np.testing.assert_array_equal(m, np.zeros(3))
+    (rec,) = caplog.records
+    assert "robot.bag" in rec.message and "'base_link' to 'laser'" in rec.message
+    assert "zero laser mount" in rec.message and "base_link, camera" in rec.message
+
+
+def test_upside_down_laser_is_warned_about(caplog):
+    tree = TfTree()
+    tree.add("base_link", "laser", (0.1, 0.0, 0.0), _q(0.0, roll=math.pi), True)
+    with caplog.at_level(logging.WARNING, logger="slam2d.io"):
+        tree.pose_of("laser", "base_link")
+    assert "upside down" in caplog.text
+
+
+def test_bad_quaternion_is_an_error():
+    with pytest.raises(ValueError, match="no rotation"):
+        TfTree().add("a", "b", (0, 0, 0), (0, 0, 0, 0), True)
+
+
+def test_without_odometry_the_robot_is_the_root_of_the_lasers_tree(caplog):
+    tree = TfTree()
+    _add(tree, "base_footprint", "base_link", (0.5, 0.0, 0.0))
+    _add(tree, "base_link", "laser", (0.2, 0.0, 0.0))
+    with caplog.at_level(logging.DEBUG, logger="slam2d.io"):
+        np.testing.assert_allclose(laser_mount(tree, "laser", None, "x.bag"), [0.7, 0.0, 0.0])
+        np.testing.assert_array_equal(laser_mount(TfTree(), "laser", None, "x.bag"), np.zeros(3))
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
