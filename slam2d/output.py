@@ -1,7 +1,7 @@
 """The output folder of a run, written so that a failed run never leaves files that look whole.
 
 Every file is first written under a ``.partial`` name and renamed only when all of them are
-complete: ``trajectory.txt`` (TUM, every input scan, in input order), ``map.pgm`` +
+complete: ``trajectory.txt`` (TUM, every input scan, stamps ascending: `slam2d.io.trajectory`), ``map.pgm`` +
 ``map.yaml`` (ROS map_server) + ``map.png``, ``config.yaml``, ``summary.json``.
 """
 from __future__ import annotations

@@ -28,6 +28,7 @@ from scipy.spatial import cKDTree
 
 from slam2d.errors import InputError
 from slam2d.geometry import between
+from slam2d.io.trajectory import NUDGE
 
 
 @dataclass
@@ -69,7 +70,10 @@ def read_constraints(path) -> list[dict]:
 
 def check_stamps(constraints: list[dict], run_stamps: np.ndarray, path, tolerance: float = 1e-3) -> None:
     """A constraint's ``from_stamp``/``to_stamp`` (when written) must be the run's stamps of its
-    scans: otherwise constraints.jsonl and trajectory.txt are not from the same run."""
+    scans (``run_stamps`` in scan order, as `read_tum` gives them): otherwise constraints.jsonl
+    and trajectory.txt are not from the same run. trajectory.txt may have moved a repeated stamp
+    later by 1 µs per line (`slam2d.io.trajectory`), never earlier."""
+    nudge = float(NUDGE) * len(run_stamps)
     for c in constraints:
         for end in ("from", "to"):
             stamp, i = c.get(f"{end}_stamp"), c[f"{end}_scan"]
@@ -79,10 +83,10 @@ def check_stamps(constraints: list[dict], run_stamps: np.ndarray, path, toleranc
                 raise InputError(path, f"{end}_scan {i} is not a scan of trajectory.txt ({len(run_stamps)} scans)",
                                  line=c["line"])
             try:
-                bad = abs(float(stamp) - run_stamps[i]) > tolerance
+                d = run_stamps[i] - float(stamp)
             except (TypeError, ValueError):
                 raise InputError(path, f"{end}_stamp is not a number: {stamp!r}", line=c["line"]) from None
-            if bad:
+            if not -tolerance <= d <= tolerance + nudge:
                 raise InputError(path, f"{end}_stamp {stamp} is not trajectory.txt's stamp {run_stamps[i]:.6f} "
                                  f"of scan {i} (files from different runs?)", line=c["line"])
 

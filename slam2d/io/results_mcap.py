@@ -5,6 +5,11 @@ the final pose of every scan, frame ``map``), ``/tf`` (``tf2_msgs/msg/TFMessage`
 map→odom and odom→base_link at every scan, as a ROS SLAM node publishes them) and ``/map``
 (``nav_msgs/msg/OccupancyGrid``, the final map: 100 occupied, 0 free, −1 unknown, exactly
 the cells of ``map.pgm``).
+
+Messages are written scan by scan in the order of ``trajectory.txt``: ascending stamps, a
+repeated stamp moved 1 µs later (`slam2d.io.trajectory`), which ``/slam2d/pose`` and ``/tf``
+carry; so evo (``evo_traj mcap results.mcap /slam2d/pose``) accepts the poses where the log's
+own stamps go back (Intel). The input scans keep their own header stamps.
 """
 from __future__ import annotations
 
@@ -12,7 +17,9 @@ import numpy as np
 
 from slam2d.geometry import compose, inverse
 from slam2d.grid.map_export import FREE, OCCUPIED, UNKNOWN
-from slam2d.io.mcap import McapWriter, _header, _pose_dict, _stamp_of
+from slam2d.io.mcap import McapWriter, _header, _pose_dict
+from slam2d.io.ros2_msgs import stamp_from_text
+from slam2d.io.trajectory import ascending_stamps
 
 
 def _tf(parent, child, pose, sec, nsec):
@@ -36,19 +43,20 @@ def occupancy_grid_msg(img_top_first: np.ndarray, resolution: float, origin_xy, 
 
 
 def write_results_mcap(path, source, poses: np.ndarray, map_img, resolution, origin_xy) -> int:
-    n = 0
+    scans = [scan for scan, _ in zip(source, poses)]
+    order, texts = ascending_stamps([s.timestamp_text or f"{s.timestamp:.9f}" for s in scans])
     with open(path, "wb") as f:
         w = McapWriter(f)
         sec = nsec = 0
-        for scan, pose in zip(source, poses):
+        for i, text in zip(order, texts):
+            scan, pose = scans[i], poses[i]
             w.write_scan(scan)
-            sec, nsec = _stamp_of(scan)
+            sec, nsec = stamp_from_text(text)
             w.write_pose("/slam2d/pose", pose, sec, nsec, "map")
             odom = scan.odom_pose if scan.odom_pose is not None else np.zeros(3)
             map_to_odom = compose(pose, inverse(odom))
             w.write("/tf", "tf2_msgs/TFMessage", {"transforms": [_tf("map", "odom", map_to_odom, sec, nsec),
                                                                  _tf("odom", "base_link", odom, sec, nsec)]}, sec, nsec)
-            n += 1
         w.write("/map", "nav_msgs/OccupancyGrid", occupancy_grid_msg(map_img, resolution, origin_xy, sec, nsec), sec, nsec)
         w.finish()
-    return n
+    return len(scans)
