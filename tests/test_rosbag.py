@@ -164,6 +164,18 @@ def test_bad_bags_are_one_line(tmp_path, capsys):
         assert "Traceback" not in err
 
 
+def test_bad_ros2_bags_are_one_line(tmp_path, capsys):
+    for name in ("yaml", "db3"):
+        write_bag(tmp_path / name, sim_scans(20), "sqlite3")
+    (tmp_path / "yaml" / "metadata.yaml").write_text("rosbag2_bagfile_information: [\n")
+    db3 = tmp_path / "db3" / "db3.db3"
+    db3.write_bytes(db3.read_bytes()[:5000])
+    for name in ("yaml", "db3"):
+        assert main(["info", str(tmp_path / name)]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"slam2d: error: {tmp_path / name}: not a readable ROS bag") and err.count("\n") == 1, err
+
+
 def test_bad_laserscan_names_the_record(tmp_path):
     p = tmp_path / "bad.bag"
     w = RosbagWriter(p, "ros1")

@@ -44,6 +44,11 @@ def _reader_errors():
             IndexError, AssertionError, AttributeError)
 
 
+def _why(e: Exception) -> str:
+    """An exception as one line (rosbags' YAML errors span several)."""
+    return f"{type(e).__name__}: {' '.join(str(e).split())}"
+
+
 class RosbagLog:
     """Lazy iterator over the LaserScans of a ROS 1 or ROS 2 bag."""
 
@@ -69,7 +74,7 @@ class RosbagLog:
             r = AnyReader([self.bag], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
             r.open()
         except _reader_errors() as e:
-            raise InputError(self.path, f"not a readable ROS bag ({type(e).__name__}: {e})") from None
+            raise InputError(self.path, f"not a readable ROS bag ({_why(e)})") from None
         return r
 
     def num_scans(self) -> int:
@@ -84,7 +89,7 @@ class RosbagLog:
             try:
                 yield k, conn.topic, reader.deserialize(raw, conn.msgtype)
             except _reader_errors() as e:
-                raise InputError(self.path, f"undecodable {conn.msgtype} on {conn.topic} ({e})", record=k) from None
+                raise InputError(self.path, f"undecodable {conn.msgtype} on {conn.topic} ({_why(e)})", record=k) from None
 
     def _tracks(self, reader):
         odom, gt, tree = PoseTrack(), PoseTrack(), TfTree()
@@ -118,7 +123,7 @@ class RosbagLog:
         except InputError:
             raise
         except _reader_errors() as e:
-            raise InputError(self.path, f"corrupt ROS bag data ({type(e).__name__}: {e})") from None
+            raise InputError(self.path, f"corrupt ROS bag data ({_why(e)})") from None
         finally:
             reader.close()
 
