@@ -300,3 +300,22 @@ def test_loops_ground_truth_of_the_simulator(tmp_path):
     g = json.loads(r.stdout)["ground_truth"]
     assert g["matching"] == "mcap_scan_index" and g["matched_scans"] == json.loads((run / "summary.json").read_text())["scans"]
     assert g["final_graph"]["unknown"] == 0 and g["recall"]["episodes"] >= 1
+
+
+def test_loops_on_a_run_whose_stamps_go_back_and_repeat(tmp_path):
+    """trajectory.txt is sorted by stamp (evo's rule); eval matches its lines to scans by its
+    '# scans' comment, so constraints, own poses and the ground truth line up as before."""
+    n = 400
+    stamps = [f"{1e9 + 0.5 * i:.6f}" for i in range(n)]
+    stamps[260], stamps[261] = stamps[261], stamps[260]  # a constraint's end stamped after its successor
+    stamps[271] = stamps[270]  # a repeated stamp at another constraint's end
+    gt, own, truth = _gt_run(tmp_path, stamps)
+    assert (tmp_path / "trajectory.txt").read_text().startswith("# scans 0-259 261 260 262-399\n")
+    t, poses, _ = read_tum(tmp_path / "trajectory.txt")
+    np.testing.assert_allclose(poses[:, :2], own[:, :2], atol=2e-6)
+    write_tum(tmp_path / "order.gt.txt", [f"{i}.0" for i in range(n)], gt)
+    r = slam2d("eval", "loops", tmp_path, "--ground-truth", tmp_path / "order.gt.txt", "--json")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["ground_truth"]["final_graph"]["precision"] == pytest.approx(0.4)
+    assert out["own"]["accepted"]["true"] >= 1
