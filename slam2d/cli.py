@@ -258,11 +258,11 @@ def cmd_convert(args) -> int:
             from slam2d.io.mcap import McapWriter
 
             f = open(tmp, "wb")
-            w = McapWriter(f)
+            w = McapWriter(f, source=args.input)
         else:
             from slam2d.io.rosbag import RosbagWriter
 
-            w = RosbagWriter(tmp, kind)
+            w = RosbagWriter(tmp, kind, source=args.input)
         with _progress(total, args.no_progress, "convert") as bar:
             for scan in src:
                 w.write_scan(scan)

@@ -120,3 +120,16 @@ def test_failed_convert_leaves_nothing(tmp_path, capsys):
         assert main(["convert", str(log), str(tmp_path / out), "--no-progress"]) == 2
         assert "bad.clf:6:" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.clf"]
+
+
+def test_stamps_a_ros_time_cannot_hold_are_one_line(tmp_path, capsys):
+    log = tmp_path / "wrapped.clf"
+    with open(log, "w") as f:  # infinite-corridor's corrected log stamps scans 4.29497e+09 (a 32-bit wrap)
+        for k in range(3):
+            f.write(f"FLASER 3 1.0 2.0 3.0 0 0 0 0 0 0 4.29497e+09 h {k}\n")
+    for out in ("x.bag", "x.mcap", "x_ros2"):
+        assert main(["convert", str(log), str(tmp_path / out), "--no-progress"]) == 2
+        err = capsys.readouterr().err
+        assert f"{log}: record 0: scan stamp 4.29497e+09 is outside the seconds a ROS time holds" in err, err
+        assert err.count("\n") == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["wrapped.clf"]

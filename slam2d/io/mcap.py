@@ -141,18 +141,30 @@ def _pose_dict(p):
             "orientation": {"x": 0.0, "y": 0.0, "z": z, "w": w}}
 
 
-def _stamp_of(scan: Scan) -> tuple[int, int]:
+#: seconds a ``builtin_interfaces/Time`` (ROS 2, int32) and a ROS 1 ``time`` (uint32) can hold
+ROS2_SECONDS = (-2**31, 2**31 - 1)
+ROS1_SECONDS = (0, 2**32 - 1)
+
+
+def _stamp_of(scan: Scan, seconds=ROS2_SECONDS, source="input") -> tuple[int, int]:
     if scan.timestamp_text is not None:
-        return stamp_from_text(scan.timestamp_text)
-    ns = round(scan.timestamp * 1e9)
-    return ns // 1_000_000_000, ns % 1_000_000_000
+        sec, nsec = stamp_from_text(scan.timestamp_text)
+    else:
+        ns = round(scan.timestamp * 1e9)
+        sec, nsec = ns // 1_000_000_000, ns % 1_000_000_000
+    if not seconds[0] <= sec <= seconds[1]:
+        raise InputError(source, f"scan stamp {scan.timestamp_text or scan.timestamp} is outside the "
+                         f"seconds a ROS time holds ({seconds[0]}..{seconds[1]})", record=scan.index)
+    return sec, nsec
 
 
-def scan_messages(scan: Scan, with_mount: bool, scan_topic: str = "/scan", odom_topic: str = "/odom"):
+def scan_messages(scan: Scan, with_mount: bool, scan_topic: str = "/scan", odom_topic: str = "/odom",
+                  seconds=ROS2_SECONDS, source="input"):
     """(topic, type, fields, sec, nanosec) of the messages that carry one scan: ``/tf_static``
     base_link → laser (``with_mount``: before the first scan), the LaserScan, its Odometry and
-    ground truth when it has them. Every bag and MCAP writer of slam2d writes these."""
-    sec, nsec = _stamp_of(scan)
+    ground truth when it has them. Every bag and MCAP writer of slam2d writes these. A stamp the
+    ROS time type cannot hold (``seconds``) is an error naming ``source`` and the scan."""
+    sec, nsec = _stamp_of(scan, seconds, source)
     if with_mount:
         off = scan.laser_offset
         yield "/tf_static", "tf2_msgs/TFMessage", {"transforms": [{
@@ -188,9 +200,10 @@ def scan_messages(scan: Scan, with_mount: bool, scan_topic: str = "/scan", odom_
 class McapWriter:
     """Writes scans (+ odometry, ground truth, laser mount) in the ROS 2 profile."""
 
-    def __init__(self, f, scan_topic="/scan", odom_topic="/odom"):
+    def __init__(self, f, scan_topic="/scan", odom_topic="/odom", source="input"):
         from mcap_ros2.writer import Writer
 
+        self.source = source  # the log the scans come from, named in errors
         self._w = Writer(f)
         self.scan_topic, self.odom_topic = scan_topic, odom_topic
         self._schemas = {}
@@ -214,7 +227,7 @@ class McapWriter:
 
     def write_scan(self, scan: Scan):
         for topic, type_name, msg, sec, nsec in scan_messages(scan, not self._mount_written, self.scan_topic,
-                                                              self.odom_topic):
+                                                              self.odom_topic, source=self.source):
             self.write(topic, type_name, msg, sec, nsec)
         self._mount_written = True
 

@@ -166,10 +166,10 @@ ROS1, ROS2_SQLITE3, ROS2_MCAP = "ros1", "sqlite3", "mcap"
 class RosbagWriter:
     """Writes scans (+ odometry, ground truth, laser mount) as a ROS 1 ``.bag`` or a ROS 2 bag folder."""
 
-    def __init__(self, path, kind: str = ROS1):
+    def __init__(self, path, kind: str = ROS1, source="input"):
         from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-        self.path, self.kind = Path(path), kind
+        self.path, self.kind, self.source = Path(path), kind, source
         if kind == ROS1:
             from rosbags.rosbag1 import Writer
 
@@ -203,9 +203,11 @@ class RosbagWriter:
         self._w.write(self._conns[topic], self._last_ns, data)
 
     def write_scan(self, scan: Scan) -> None:
-        from slam2d.io.mcap import scan_messages
+        from slam2d.io.mcap import ROS1_SECONDS, ROS2_SECONDS, scan_messages
 
-        for topic, type_name, msg, sec, nsec in scan_messages(scan, with_mount=not self._conns):
+        seconds = ROS1_SECONDS if self.kind == ROS1 else ROS2_SECONDS
+        for topic, type_name, msg, sec, nsec in scan_messages(scan, with_mount=not self._conns, seconds=seconds,
+                                                              source=self.source):
             self.write(topic, type_name, msg, sec, nsec)
 
     def finish(self) -> None:
