@@ -199,6 +199,9 @@ class Slam:
             t1 = time.perf_counter()
             poses = globalize(poses, gs.finish())
             self._stage_ms["final_optimization"] = [(time.perf_counter() - t1) * 1e3]
+        for sub in getattr(self.tracker, "all_submaps", lambda: [])():
+            sub.grid.release()  # local SLAM and loop search are over: the map is built from the nodes
+        _return_freed_memory()
         t_map = time.perf_counter()
         node_poses = {n.scan_index: poses[n.scan_index] for n in self.nodes} if gs is not None else None
         grid = build_map(cfg, self.nodes, node_poses)
@@ -257,6 +260,20 @@ class Slam:
         duration = s["duration_s"]
         s["real_time_factor"] = round(duration / wall, 3) if wall > 0 else None
         return s
+
+
+def _return_freed_memory() -> None:
+    """Give memory freed by the allocator back to the system (glibc's ``malloc_trim``). Submap grids
+    of a few MB each come from the heap, not from their own mappings, once glibc's mmap threshold
+    has grown past their size; freed, they stay in the process until trimmed."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        libc.malloc_trim(0)
+    except (OSError, AttributeError):  # not glibc: nothing to do
+        pass
 
 
 def globalize(local_poses: np.ndarray, node_global: dict[int, np.ndarray]) -> np.ndarray:

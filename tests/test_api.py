@@ -108,3 +108,41 @@ def test_outputs_identical_with_one_and_two_threads(tmp_path):
     strip = [[{k: v for k, v in json.loads(x).items() if k != "search_ms"} for x in (o / "constraints.jsonl").read_text().splitlines()]
              for o in outs]
     assert strip[0] == strip[1] and strip[0]
+
+
+def test_finish_frees_the_submaps_and_keeps_a_complete_map():
+    """After finish no scan is matched or inserted again: submap grids and search grids are released
+    (memory then holds the map, not the map twice), and the map still holds every node."""
+    from slam2d.config import config_from_dict
+    from slam2d.grid.map_builder import build_map
+
+    # without the final refinement, the result's node poses are those the map was built from
+    slam = slam2d.Slam(config_from_dict({"final_refinement": {"enabled": False}}))
+    scans = [s for _, s in zip(range(400), slam2d.open_source(BUNDLED))]
+    for s in scans:
+        slam.add_scan(s)
+    subs = slam.tracker.all_submaps()
+    assert len(slam.global_slam.matchers) >= 2 and all(s.grid.prob.size > 0 for s in subs)
+    res = slam.finish()
+    assert all(s.grid.prob.size == 0 and s.grid.known.size == 0 for s in subs)
+    assert all(m.grid is None for m in slam.global_slam.matchers.values())
+    assert res.map.logodds.size == 0 and res.map.prob.dtype == np.float32  # the finished map: 5 bytes a cell
+    again = build_map(slam.config, res.nodes, {n.scan_index: res.poses[n.scan_index] for n in res.nodes})
+    np.testing.assert_array_equal(again.prob, res.map.prob)
+    assert (res.map.known > 0).sum() > 10000
+
+
+def test_map_image_is_top_row_first(tmp_path):
+    """map.pgm row 0 is the map's top (largest y), as map_server reads it."""
+    from slam2d.grid.map_export import OCCUPIED, occupancy_image
+    from slam2d.grid.probability_grid import ProbabilityGrid
+
+    g = ProbabilityGrid(0.1)
+    for _ in range(10):  # a hit 2 m above the sensor, free space below it
+        g.insert((0.0, 0.0), np.array([[0.0, 2.0]]))
+    img, ox, oy = occupancy_image(g, 0.65, 0.196)
+    r, c = np.argwhere(img == OCCUPIED)[0]
+    y = oy + (img.shape[0] - 1 - r + 0.5) * g.resolution
+    x = ox + (c + 0.5) * g.resolution
+    assert abs(y - 2.0) < 0.1 and abs(x) < 0.1
+    assert (np.argwhere(img == OCCUPIED)[:, 0] == r).all()

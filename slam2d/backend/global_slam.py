@@ -265,6 +265,8 @@ class GlobalSlam:
             self.optimize_seconds += time.perf_counter() - t0
         self.optimize(final=True)
         self.stacks.clear()  # no more searches: the precomputation stacks go before the map is built
+        for m in self.matchers.values():  # ... and so do the search grids (Slam.finish releases the submaps')
+            m.grid = None
         return {j: self.graph.node_pose(j) for j in self.node_order}
 
     def summary(self) -> dict:

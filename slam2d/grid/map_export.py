@@ -21,23 +21,23 @@ def occupancy_image(grid: ProbabilityGrid, occupied_thresh: float, free_thresh: 
     if b is None:
         return np.full((1, 1), UNKNOWN, dtype=np.uint8), float(grid.origin[0]), float(grid.origin[1])
     r0, r1, c0, c1 = b
-    img = np.full((r1 - r0, c1 - c0), UNKNOWN, dtype=np.uint8)
+    img = np.full((r1 - r0, c1 - c0), UNKNOWN, dtype=np.uint8)  # image rows top-first: grid row r1 - 1 first
     for a in range(r0, r1, BAND_ROWS):  # in bands of rows: a large map never exists as floats at once
         z = min(a + BAND_ROWS, r1)
-        p = grid.probability_rows(a, z, unknown_value=np.nan)[:, c0:c1]
-        band = img[a - r0:z - r0]
+        p = grid.probability_rows(a, z, unknown_value=np.nan)[::-1, c0:c1]
+        band = img[r1 - z:r1 - a]
         band[p > occupied_thresh] = OCCUPIED
         band[p < free_thresh] = FREE
     ox = float(grid.origin[0] + c0 * grid.resolution)
     oy = float(grid.origin[1] + r0 * grid.resolution)
-    return img[::-1].copy(), ox, oy
+    return img, ox, oy
 
 
 def write_pgm(path, img: np.ndarray) -> None:
     h, w = img.shape
     with open(path, "wb") as f:
         f.write(f"P5\n# slam2d map\n{w} {h}\n255\n".encode())
-        f.write(np.ascontiguousarray(img, dtype=np.uint8).tobytes())
+        f.write(np.ascontiguousarray(img, dtype=np.uint8).data)  # no copy of a large map
 
 
 def read_pgm(path) -> np.ndarray:

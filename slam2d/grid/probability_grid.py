@@ -93,6 +93,14 @@ class ProbabilityGrid:
         self._known = known
         self.stamp = np.zeros((0, 0), dtype=np.int32)
 
+    def release(self):
+        """Drop every cell (the grid keeps its frame and rules; it is empty afterwards)."""
+        empty = np.zeros((0, 0), dtype=np.float32)
+        self.logodds, self.prob, self.field = empty, empty.copy(), empty.copy()
+        self.stamp = np.zeros((0, 0), dtype=np.int32)
+        self._known = np.zeros((0, 0), dtype=np.uint8)
+        self.field_sigma = None
+
     def ensure_contains(self, xmin, ymin, xmax, ymax):
         """Grow the grid (keeping its content and cell alignment) so the box fits."""
         res = self.resolution
@@ -170,7 +178,7 @@ class ProbabilityGrid:
         rows, cols = shape
         prob = np.full(shape, self.unknown_probability, dtype=np.float32)
         known = np.zeros(shape, dtype=np.uint8)
-        o, e = batch.in_cells(self.origin, self.resolution)
+        o, e = batch.to_cells(self.origin, self.resolution)
         # each scan's rows, from its origin and ray ends (a ray's cells lie between them)
         row_of = np.floor(e[:, 1]).astype(np.int64)
         first_row = np.minimum(np.minimum.reduceat(row_of, batch.starts[:-1]), np.floor(o[:, 1]).astype(np.int64))
@@ -272,6 +280,13 @@ class _ScanBatch:
         """(origins, ends) in cell units of a grid with this origin and resolution."""
         return (np.ascontiguousarray((self.origins - origin) / resolution),
                 np.ascontiguousarray((self.ends - origin) / resolution))
+
+    def to_cells(self, origin, resolution):
+        """``in_cells`` without a copy: the batch's own arrays are converted (the same arithmetic)."""
+        for a in (self.origins, self.ends):
+            a -= origin
+            a /= resolution
+        return self.origins, self.ends
 
 
 def quantize(prob: np.ndarray) -> np.ndarray:
