@@ -71,30 +71,6 @@ class PoseExtrapolator:
         self.last_pose, self.last_time, self.last_odom = np.asarray(pose, dtype=float), time_s, odom
 
 
-#: a low-scoring match is judged on the cells its points fall in that the submap has observed; with
-#: fewer than this share of its points there, the observed part is too small to judge by
-MIN_OBSERVED_SHARE = 0.25
-
-
-def observed_score(grid, observed: np.ndarray, pose, points: np.ndarray) -> tuple[float, float]:
-    """(mean grid value over the points that fall in observed cells, share of points that do) at ``pose``;
-    ``observed`` is positive where the submap observed a cell (its known mask, or its stamps).
-
-    A right pose on partly new ground scores low overall only because some points fall in cells
-    the submap has never observed; the points in observed cells still lie on its walls. A wrong
-    pose puts points in space the submap saw empty, and those cells are observed too.
-    """
-    cells = grid.cells(points, pose, np.zeros(1))[0]
-    col, row = cells[:, 0], cells[:, 1]
-    rows, cols = observed.shape
-    inside = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
-    seen = np.zeros(len(points), dtype=bool)
-    seen[inside] = observed[row[inside], col[inside]] > 0
-    if not seen.any():
-        return 0.0, 0.0
-    return float(grid.values[row[seen], col[seen]].mean()), float(seen.mean())
-
-
 #: a translation direction is degenerate when the scan's information along it is below this share of the other's
 DEGENERATE_RATIO = 0.01
 #: a point's tangent runs between its k-th neighbours on either side (the smallest k of these)
@@ -169,7 +145,6 @@ class LocalSlam:
         self.num_forced = 0
         self.num_degenerate = 0
         self.num_weak = 0
-        self.num_new_ground = 0
         self.untrusted_in_a_row = 0
         self.scores: list[float] = []
         self.recent_scores: deque[float] = deque(maxlen=RECENT_SCORES)
@@ -191,35 +166,21 @@ class LocalSlam:
     def _typical_score(self) -> float | None:
         return float(np.median(self.recent_scores)) if len(self.recent_scores) >= MIN_SCORES_FOR_TRUST else None
 
-    def _agrees(self, m, grid, observed, points, limit, new_ground: bool) -> bool:
-        """Whether a match off the window's edge can be taken: it scores ``limit`` (None: anything
-        goes), or, with ``new_ground``, its points in cells the submap observed do and enough of
-        them are there (a right pose whose scan reaches where the submap has not looked)."""
-        if m is None or m.on_edge:
-            return False
-        if limit is None or m.score >= limit:
-            return True
-        if not new_ground:
-            return False
-        seen_score, seen_share = observed_score(grid, observed, m.pose, points)
-        return seen_share >= MIN_OBSERVED_SHARE and seen_score >= limit
-
     def _recovery_floor(self, limit: float, params: SearchParameters) -> float:
         """Below this, no pose of the recovery lattice ``params`` can score ``limit`` once the delta
         penalty is taken off."""
         return float(np.nextafter(limit * self.wide_matcher.penalty.smallest_factor(params), -np.inf))
 
-    def _recover(self, grid, observed, scan, predicted, points, limit, floor=0.0, new_ground=False):
+    def _recover(self, grid, scan, predicted, points, limit, floor=0.0):
         """Branch-and-bound over the recovery windows around each distinct prediction, in the order the
         motion model believes them (odometry, constant velocity, no motion): the first whose best
-        match ``_agrees`` with the submap (``new_ground`` as there) wins; without one, the best of all.
+        match scores ``limit`` (None: any) off the window's edge wins; without one, the best of all.
         In a corridor or a row of equal doors several predictions find a good match at different
         poses; the scene cannot tell them apart, so the likelier prediction decides.
 
-        ``floor``: the caller takes a recovered match only if the fine search around its peak agrees,
-        which needs a score of at least ``limit`` (with ``new_ground``: ``MIN_OBSERVED_SHARE × limit``,
-        that share of the points scoring ``limit``), and no pose of the recovery lattice scoring below
-        ``_recovery_floor`` of that (its score times the smallest delta penalty) can reach it. So branch-and-bound may cut every
+        ``floor``: the caller takes a recovered match only if the fine search around its peak scores
+        ``limit``, and no pose of the recovery lattice scoring below ``_recovery_floor`` (its
+        score times the smallest delta penalty) can reach that. So branch-and-bound may cut every
         subtree whose bound is not above the floor: the best match above it is the same one, and a
         prediction whose best lies below it yields nothing instead of a match the caller would
         reject. (The fine search may step two cells past the window's edge; a match found there was
@@ -242,7 +203,7 @@ class LocalSlam:
             m = wide._match(grid, h, points, floor, wide.linear_window, wide.angular_window, stack=stack)
             if m is None:
                 continue
-            if self._agrees(m, grid, observed, points, limit, new_ground):
+            if not m.on_edge and (limit is None or m.score >= limit):
                 best = m
                 break
             if best is None or m.score > best.score:
@@ -280,29 +241,18 @@ class LocalSlam:
                 # not trusted: search wide around every prediction (Olson 2009's exhaustive search made
                 # cheap by branch-and-bound, Hess et al. 2016 Sec. V-C)
                 t_rec = time.perf_counter()
-                # Lost: the best pose lay on the window's edge, so the window did not hold the peak (a fast
-                # turn with bad odometry, a gap). Its true pose may then see ground the submap has not
-                # observed, and never score the limit overall; it is taken when its points in observed
-                # cells score it (``observed_score``). A clear peak inside the window is judged by its score
-                # alone: in a corridor, points slid along the walls still lie on observed walls.
-                lost = m is None or m.on_edge
-                observed = submap.grid.stamp
+                # with a match in hand, a recovered one is only taken when trusted (below)
                 w = self.wide_matcher
                 floor = 0.0 if m is None or limit is None else self._recovery_floor(
-                    MIN_OBSERVED_SHARE * limit if lost else limit,
-                    SearchParameters.make(w.linear_window, w.angular_window, grid.resolution, points))
-                wide = self._recover(grid, observed, scan, predicted, points, limit, floor, new_ground=lost)
+                    limit, SearchParameters.make(w.linear_window, w.angular_window, grid.resolution, points))
+                wide = self._recover(grid, scan, predicted, points, limit, floor)
                 timings["recovery"] = (time.perf_counter() - t_rec) * 1e3
                 self.num_recovery_searches += 1
-                # a recovered pose replaces the match only when it is trusted where the match was not (a
-                # wide window always holds some pose that scores a little higher, often a wrong one), or,
-                # when lost, agrees with what the submap observed
-                trusted_wide = wide is not None and (limit is None or wide.score >= limit)
-                if wide is not None and (m is None or (wide.score > m.score and trusted_wide)
-                                         or (lost and self._agrees(wide, grid, observed, points, limit, True))):
+                # a recovered pose replaces the match only when it is trusted where the match was not:
+                # a wide window always holds some pose that scores a little higher, often a wrong one
+                if wide is not None and (m is None or (wide.score > m.score and (limit is None or wide.score >= limit))):
                     m = wide
                     self.num_recovered += 1
-                    self.num_new_ground += not trusted_wide
             t2 = time.perf_counter()
             timings["match"] = (t2 - t1) * 1e3
             if m is not None:
@@ -379,7 +329,6 @@ class LocalSlam:
                                "wide_searches": self.num_escalated,
                                "recovery_searches": self.num_recovery_searches, "recovered": self.num_recovered,
                                "untrusted": self.num_untrusted, "inserted_untrusted": self.num_forced, "weak": self.num_weak,
-                               "new_ground": self.num_new_ground,
                                "degenerate": self.num_degenerate,
                                "submaps": self.submaps.count, "finished_submaps": len(self.finished_submaps),
                                "score_mean": round(float(s.mean()), 4), "score_p5": round(float(np.percentile(s, 5)), 4)}}

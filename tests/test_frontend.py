@@ -1,6 +1,6 @@
 """Local SLAM's set-up: the submap size follows whether a pose graph follows."""
 from slam2d.config import config_from_dict
-from slam2d.frontend import MIN_OBSERVED_SHARE, LocalSlam
+from slam2d.frontend import LocalSlam
 
 
 def test_submap_size_depends_on_loop_closure():
@@ -149,7 +149,7 @@ def test_recovery_prefers_the_odometry_where_the_scene_repeats(monkeypatch):
 
 
 def test_recovery_floor_changes_no_result(monkeypatch):
-    """The recovery search prunes below what could agree with the submap (less the largest delta penalty): it must
+    """The recovery search prunes below the trust limit (less the largest delta penalty): it must
     find exactly what the unpruned search finds wherever that can be taken. Whole local runs with
     recoveries (an injected 30° heading error, and a 2 s gap without odometry) give identical
     poses and counts with and without the floor."""
@@ -169,8 +169,7 @@ def test_recovery_floor_changes_no_result(monkeypatch):
     monkeypatch.setattr(LocalSlam, "_recovery_floor",
                         lambda self, limit, params: seen.append(real(self, limit, params)) or 0.0)
     plain, without = _run(scans)
-    # the floor was live (it prunes: a match agrees from MIN_OBSERVED_SHARE of the limit), yet nothing changed:
-    assert seen and min(seen) > 0.5 * MIN_OBSERVED_SHARE
+    assert seen and min(seen) > 0.3  # the floor was live (it prunes), yet nothing changed:
     np.testing.assert_array_equal(np.array(with_floor), np.array(without))
     assert floored.summary() == plain.summary()
 
@@ -182,7 +181,6 @@ def test_recovery_floor_keeps_a_match_that_only_the_penalty_pushes_below_the_lim
     scans = _bundled_scans(120)
     tracker, poses = _run(scans[:100])
     grid = tracker.submaps.matching_submap.match_grid()
-    observed = tracker.submaps.matching_submap.grid.stamp
     from slam2d.range_data import range_data, voxel_filter
 
     scan = scans[99]
@@ -191,7 +189,7 @@ def test_recovery_floor_keeps_a_match_that_only_the_penalty_pushes_below_the_lim
     true = np.array(poses[99])
     predicted = compose(true, np.array([1.5, -0.4, math.radians(35.0)]))
     tracker.extrapolator.last_pose = None  # the odometry prediction is the only one searched
-    found = tracker._recover(grid, observed, scan, predicted, points, None)
+    found = tracker._recover(grid, scan, predicted, points, None)
     assert found is not None and math.hypot(*(found.pose[:2] - true[:2])) < 0.1
     wide = tracker.wide_matcher
     direct = wide._match(grid, predicted, points, 0.0, wide.linear_window, wide.angular_window)
@@ -200,89 +198,9 @@ def test_recovery_floor_keeps_a_match_that_only_the_penalty_pushes_below_the_lim
     from slam2d.matching.search import SearchParameters
 
     params = SearchParameters.make(wide.linear_window, wide.angular_window, grid.resolution, points)
-    floored = tracker._recover(grid, observed, scan, predicted, points, limit, tracker._recovery_floor(limit, params))
+    floored = tracker._recover(grid, scan, predicted, points, limit, tracker._recovery_floor(limit, params))
     assert floored is not None
     np.testing.assert_array_equal(floored.pose, found.pose)
     assert floored.score == found.score >= limit
-    np.testing.assert_array_equal(tracker._recover(grid, observed, scan, predicted, points, limit).pose, found.pose)
-    assert tracker._recover(grid, observed, scan, predicted, points, limit, np.nextafter(limit, -1)) is None
-
-
-def test_low_score_on_new_ground_is_told_from_a_wrong_pose():
-    """A right pose whose scan half reaches unobserved ground scores low overall, but its points in
-    observed cells lie on the submap's walls; a wrong pose puts them in space the submap saw empty."""
-    from slam2d.frontend import observed_score
-    from slam2d.grid.probability_grid import ProbabilityGrid
-    from slam2d.grid.submap import Submap
-
-    grid = ProbabilityGrid(0.05, field_sigma=0.1)
-    wall = np.c_[np.full(41, 2.0), np.linspace(-1.0, 1.0, 41)]
-    for _ in range(10):  # a wall at x = 2 seen from the origin: the space before it observed free
-        grid.insert((0.0, 0.0), wall)
-    sub = Submap(0, np.zeros(3), grid)
-    match_grid = sub.match_grid()
-    behind = np.c_[np.full(41, -3.0), np.linspace(-1.0, 1.0, 41)]  # never observed by the submap
-    scan = np.concatenate([wall, behind])
-    overall, everywhere = observed_score(match_grid, np.ones(grid.shape), np.zeros(3), scan)  # as the matcher scores
-    assert everywhere == 1.0
-    seen_score, share = observed_score(match_grid, grid.stamp, np.zeros(3), scan)
-    assert share == pytest.approx(0.5, abs=0.05)
-    assert seen_score > 0.8 and overall < 0.6  # low overall, right where the submap looked
-    wrong, wrong_share = observed_score(match_grid, grid.stamp, np.array([-0.4, 0.0, 0.0]), scan)
-    assert wrong_share > 0.4 and wrong < 0.2  # the wall drawn into observed free space
-    none_score, none_share = observed_score(match_grid, grid.stamp, np.array([0.0, 30.0, 0.0]), scan)
-    assert (none_score, none_share) == (0.0, 0.0)  # nothing observed there: nothing to judge by
-
-
-def _room_scan(pose, t, index, beams=181, fov=math.pi):
-    """A 180° scan from ``pose`` in a 12 m × 8 m room with a few pillars (exact ranges)."""
-    segs = [((-6, -4), (6, -4)), ((6, -4), (6, 4)), ((6, 4), (-6, 4)), ((-6, 4), (-6, -4))]
-    for cx, cy in ((2.5, 1.5), (-2.0, -2.0), (3.0, -2.5), (-3.0, 2.0), (0.5, 3.0)):
-        h = 0.3
-        segs += [((cx - h, cy - h), (cx + h, cy - h)), ((cx + h, cy - h), (cx + h, cy + h)),
-                 ((cx + h, cy + h), (cx - h, cy + h)), ((cx - h, cy + h), (cx - h, cy - h))]
-    a = pose[2] - fov / 2 + np.arange(beams) * fov / (beams - 1)
-    d = np.c_[np.cos(a), np.sin(a)]
-    ranges = np.full(beams, np.inf)
-    for (x1, y1), (x2, y2) in segs:
-        e = np.array([x2 - x1, y2 - y1])
-        w = np.array([x1 - pose[0], y1 - pose[1]])
-        den = d[:, 0] * (-e[1]) - d[:, 1] * (-e[0])
-        with np.errstate(divide="ignore", invalid="ignore"):
-            r = (w[0] * (-e[1]) - w[1] * (-e[0])) / den
-            u = (d[:, 0] * w[1] - d[:, 1] * w[0]) / den
-        ok = (np.abs(den) > 1e-12) & (r > 0) & (u >= 0) & (u <= 1)
-        ranges[ok] = np.minimum(ranges[ok], r[ok])
-    from slam2d.types import Scan
-
-    return Scan.from_ranges(t, ranges, -fov / 2, fov / (beams - 1), 30.0, odom_pose=pose, index=index)
-
-
-def test_a_turn_lost_by_bad_odometry_is_recovered_where_half_the_scan_is_new_ground():
-    """The robot scans a room, then turns 90°: half of the new scan falls where the submap has never
-    looked, so even the true pose scores about half the usual. With right odometry that is a clear
-    peak inside the window (weak, mapped). With the odometry 10-30° off, the match lands on the
-    window's edge (lost); the recovery search then takes the pose whose points in observed cells
-    score as usual — before, nothing scored the limit and the scan was left untrusted at the wrong
-    heading. (A 40° error, whose window holds a wrong low peak, is not recovered: see the README.)"""
-    import dataclasses
-
-    def run(odom_error_deg):
-        tracker = LocalSlam(config_from_dict({}), loop_closure=True)
-        poses = [np.array([0.0, 0.0, 0.0])] * 15 + [np.array([0.0, 0.0, math.pi / 2])]
-        out = []
-        for i, p in enumerate(poses):
-            odom = p + (np.array([0, 0, math.radians(odom_error_deg)]) if i == len(poses) - 1 else 0.0)
-            scan = dataclasses.replace(_room_scan(p, float(i) * 6.0, i), odom_pose=odom)  # 6 s apart: all inserted
-            out.append(tracker.add_scan(scan))
-        return tracker.summary()["local_slam"], out[-1]
-
-    def right(pose):
-        return np.abs(pose[:2]).max() < 0.05 and abs(math.remainder(pose[2] - math.pi / 2, 2 * math.pi)) < math.radians(1)
-
-    s, last = run(0.0)
-    assert last.quality == "weak" and s["new_ground"] == 0 and s["recovered"] == 0 and right(last.local_pose)
-    for err in (10.0, 20.0, 30.0):
-        s, last = run(err)
-        assert s["wide_searches"] == 1 and s["recovery_searches"] == 1  # lost: on the edge of the largest window
-        assert s["recovered"] == 1 and s["new_ground"] == 1 and last.quality == "weak" and right(last.local_pose)
+    np.testing.assert_array_equal(tracker._recover(grid, scan, predicted, points, limit).pose, found.pose)
+    assert tracker._recover(grid, scan, predicted, points, limit, np.nextafter(limit, -1)) is None
