@@ -85,13 +85,26 @@ def _violation(hits, o, beams, resolution):
 def free_space_violation(nodes, poses, resolution: float) -> np.ndarray:
     """Per node, the mean share of its hits inside its neighbours' free space (module docstring);
     NaN where no neighbour sees any of them."""
+    return free_space_checks(nodes, poses, resolution)[0]
+
+
+def free_space_checks(nodes, poses, resolution: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per node: (the mean share of its hits inside its neighbours' free space, the same over its
+    neighbours from *other passes* only, pooled by hits: violating over checked hits of every such
+    pair, each pair in its better direction). NaN where no (other-pass) neighbour sees its hits.
+
+    The second is the revisit test: where the robot came back, a wrong pose shows against the
+    earlier pass, while its neighbours from the same pass drifted with it and agree; pooling by hits
+    gives a pair that sees little of the other (a revisit in the opposite direction with a 180°
+    laser) little say."""
     from scipy.spatial import cKDTree
 
     from slam2d import _kernels
 
     out = np.full(len(nodes), np.nan)
+    revisit = np.full(len(nodes), np.nan)
     if len(nodes) < 2:
-        return out
+        return out, revisit
     world = _world(nodes, poses)
     origins = np.array([w[0] for w in world])
     path = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(origins, axis=0).T))])
@@ -109,11 +122,13 @@ def free_space_violation(nodes, poses, resolution: float) -> np.ndarray:
             continue
         dist = np.hypot(*(origins[cand] - origins[i]).T)
         same = np.abs(path[cand] - path[i]) < 2 * NEIGHBOUR_RADIUS
-        for mask in (same, ~same):
-            picks.extend((i, int(j)) for j in cand[mask][np.argsort(dist[mask], kind="stable")[:NEIGHBOURS_PER_PASS]])
+        for other, mask in ((0, same), (1, ~same)):
+            picks.extend((i, int(j), other) for j in cand[mask][np.argsort(dist[mask], kind="stable")[:NEIGHBOURS_PER_PASS]])
     if not picks:
-        return out
+        return out, revisit
     pairs = np.array(picks, dtype=np.int64)
+    other_pass = pairs[:, 2] == 1
+    pairs = np.ascontiguousarray(pairs[:, :2])
     # both directions of every pair in one kernel call
     both = np.concatenate([pairs, pairs[:, ::-1]])
     hit_start = np.concatenate([[0], np.cumsum([len(w[1]) for w in world])]).astype(np.int64)
@@ -124,22 +139,32 @@ def free_space_violation(nodes, poses, resolution: float) -> np.ndarray:
         np.array([b[2] for b in beams]), both, float(resolution), VIOLATION_RANGE_SHARE)
     ij, ji = counts[:len(pairs)], counts[len(pairs):]
     ok = (ij[:, 1] > 0) & (ji[:, 1] > 0)
-    share = np.minimum(ij[:, 0] / np.maximum(ij[:, 1], 1), ji[:, 0] / np.maximum(ji[:, 1], 1))
+    s_ij, s_ji = ij[:, 0] / np.maximum(ij[:, 1], 1), ji[:, 0] / np.maximum(ji[:, 1], 1)
+    share = np.minimum(s_ij, s_ji)
+    better = np.where((s_ij <= s_ji)[:, None], ij, ji)  # (violating, checked) hits in the better direction
     node, share = pairs[ok, 0], share[ok]  # grouped by node already (picks run in node order)
     if len(node):
         first = np.flatnonzero(np.r_[True, node[1:] != node[:-1]])
         out[node[first]] = np.add.reduceat(share, first) / np.diff(np.r_[first, len(node)])
-    return out
+    keep = ok & other_pass
+    node, better = pairs[keep, 0], better[keep]
+    if len(node):
+        first = np.flatnonzero(np.r_[True, node[1:] != node[:-1]])
+        bad, seen = np.add.reduceat(better[:, 0], first), np.add.reduceat(better[:, 1], first)
+        revisit[node[first]] = bad / np.maximum(seen, 1)
+    return out, revisit
 
 
 def assess(cfg, nodes, poses, local: dict | None = None, loops: dict | None = None) -> dict:
     """The ``health`` section of summary.json. ``local``/``loops``: the ``local_slam`` and
     ``loop_closure`` sections (absent for odometry-only runs or local SLAM alone)."""
-    v = free_space_violation(nodes, poses, cfg.grid.resolution)
-    v = v[~np.isnan(v)]
+    v, rv = free_space_checks(nodes, poses, cfg.grid.resolution)
+    v, rv = v[~np.isnan(v)], rv[~np.isnan(rv)]
     share = float((v <= MAX_VIOLATION).mean()) if v.size else 1.0
+    revisits = float((rv <= MAX_VIOLATION).mean()) if rv.size else 1.0
     out = {"scans_checked": int(v.size), "scans_agreeing_with_map": round(share, 4),
-           "mean_free_space_violation": round(float(v.mean()), 4) if v.size else None}
+           "mean_free_space_violation": round(float(v.mean()), 4) if v.size else None,
+           "revisits_checked": int(rv.size), "revisits_agreeing": round(revisits, 4)}
     reasons, level = [], 0
     if share < BROKEN_AGREEING:
         level = 2
@@ -147,6 +172,13 @@ def assess(cfg, nodes, poses, local: dict | None = None, loops: dict | None = No
     elif share < WARN_AGREEING:
         level = 1
         reasons.append(f"{100 * (1 - share):.0f} % of scans disagree with the final map")
+    if revisits < BROKEN_AGREEING:
+        level = 2
+        reasons.append(f"only {100 * revisits:.0f} % of the scans where the robot came back agree with its earlier pass "
+                       "(a loop was not closed, or closed wrong)")
+    elif revisits < WARN_AGREEING:
+        level = max(level, 1)
+        reasons.append(f"{100 * (1 - revisits):.0f} % of the scans where the robot came back disagree with its earlier pass")
     if local:
         matched = local.get("matched_scans", 0) + local.get("untrusted", 0)
         untrusted = local.get("untrusted", 0) / matched if matched else 0.0
@@ -170,4 +202,4 @@ def assess(cfg, nodes, poses, local: dict | None = None, loops: dict | None = No
     return out
 
 
-__all__ = ["assess", "free_space_violation"]
+__all__ = ["assess", "free_space_checks", "free_space_violation"]

@@ -35,6 +35,23 @@ def test_health_passes_a_good_map_and_flags_a_broken_one():
     assert bad["reasons"]
 
 
+def test_health_flags_a_revisit_that_was_not_closed():
+    """The robot comes back along its earlier path but the map puts it a metre and a few degrees
+    off (a loop that was never closed): its scans agree with their own pass, not with the earlier
+    one. The revisit share judges exactly those scans, and says so."""
+    cfg, tracker, result = _bundled_local_run()
+    good = assess(cfg, result.nodes, result.poses, tracker.summary()["local_slam"])
+    assert good["revisits_checked"] > 100 and good["revisits_agreeing"] > 0.95, good
+    poses = result.poses.copy()
+    start = int(0.75 * len(poses))  # the last quarter drifted away, rigidly
+    off = np.array([1.0, 0.3, math.radians(4.0)])
+    for i in range(start, len(poses)):
+        poses[i] = compose(off, poses[i])
+    bad = assess(cfg, result.nodes, poses, tracker.summary()["local_slam"])
+    assert bad["revisits_agreeing"] < good["revisits_agreeing"] - 0.1, bad
+    assert bad["status"] != "OK" and any("came back" in r for r in bad["reasons"]), bad
+
+
 def test_health_flags_untrusted_matches():
     local = {"matched_scans": 900, "untrusted": 100}
     h = assess(config_from_dict({}), [], np.zeros((0, 3)), local)
