@@ -47,6 +47,23 @@ def test_refined_pose_is_re_scored():
     assert bad.rescore < 0.55 and bad.reason.startswith("refined pose scores")
 
 
+def test_a_refined_pose_that_is_not_the_peak_is_rejected():
+    """The margin is measured from the best pose of the verification window; a constraint whose own
+    (refined) pose is not that peak, with a better pose beyond the exclusion zone, is rejected, even
+    when it scores enough and the margin alone would pass."""
+    segs = floor_plan()
+    center = np.array([6.0, 1.25, 0.0])
+    m = SubmapMatcher(submap(segs, [center + [dx, 0.0, 0.0] for dx in np.linspace(-1, 1, 9)]), 4)
+    pts = scan_points(segs, center)
+    args = (pts, 0.3, 0.02, (0.6, 0.035), (0.2, 0.0175), 0.004)
+    good = m.verify(LoopMatch(center.copy(), center.copy(), 0.7, 0.0), *args)
+    assert good.reason is None and good.margin >= 0.02
+    off = center + [0.0, 0.3, 0.0]  # the true pose lies 0.3 m away, inside the window, outside the exclusion
+    bad = m.verify(LoopMatch(off, off, 0.7, 0.0), *args)
+    assert bad.rescore >= 0.3 and bad.margin >= 0.02  # re-score and margin (the peak's) would both pass
+    assert bad.reason.startswith("ambiguous: a pose 0.30 m"), bad.reason
+
+
 def test_ambiguous_match_in_a_symmetric_world_is_rejected():
     """Two long parallel walls, no ends in range: every slide along them scores the same."""
     segs = np.array([[-30.0, 1.0, 30.0, 1.0], [-30.0, -1.0, 30.0, -1.0]])

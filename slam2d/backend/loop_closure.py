@@ -9,7 +9,9 @@ a submap whose own nodes score low at their own poses (``self_score``):
   still reach ``min_score`` (the lattice score alone can be a lucky cell);
 - ambiguity: an exhaustive search on the lattice around the refined pose (``margin_window``)
   finds the best *separated* local maximum (outside ``margin_exclusion`` of the peak); the
-  peak must beat it by ``min_margin`` (a corridor's slide, repeated doors). Chosen over a
+  peak must beat it by ``min_margin`` (a corridor's slide, repeated doors), and the peak must be
+  the refined pose itself (within ``margin_exclusion``): a branch-and-bound best on the edge of
+  its window can refine onto the slope of a better pose just outside it. Chosen over a
   second branch-and-bound run with the peak excluded because the B&B kernel has no exclusion
   and a small exhaustive window costs a few ms, only for matches that passed the score;
 - information: Olson's covariance of that window's score distribution (unpenalized; covered
@@ -157,11 +159,20 @@ class SubmapMatcher:
         cells = prob.cells(points, m.pose, angles)
         scores = exhaustive(prob, cells, w)
         m.rescore = float(scores[n_ang, w, w])
-        m.margin = separated_margin(scores, int(np.ceil(exclusion[0] / res)), int(np.ceil(exclusion[1] / step)))
+        ex_lin, ex_ang = int(np.ceil(exclusion[0] / res)), int(np.ceil(exclusion[1] / step))
+        m.margin = separated_margin(scores, ex_lin, ex_ang)
         params = SearchParameters(angles, w, step, res)
         m.covariance = _covariance(scores, params, len(points), unmatched_covariance(window[0], window[1]))
+        # the margin is the window's best pose's; the constraint is the refined pose (the window's
+        # centre), so that must be the peak, or the margin speaks of another pose
+        a, iy, ix = np.unravel_index(int(np.argmax(scores)), scores.shape)
+        off_peak = abs(a - n_ang) > ex_ang or max(abs(iy - w), abs(ix - w)) > ex_lin
         if m.rescore < min_score:
             m.reason = f"refined pose scores {m.rescore:.3f} < {min_score}"
+        elif off_peak:
+            dxy = float(np.hypot(iy - w, ix - w)) * res
+            m.reason = (f"ambiguous: a pose {dxy:.2f} m, {np.degrees(abs(a - n_ang) * step):.1f}° from the refined one "
+                        f"scores {float(scores[a, iy, ix]):.3f} > {m.rescore:.3f}")
         elif m.margin < min_margin:
             m.reason = f"ambiguous: margin {m.margin:.3f} < {min_margin} to a separated peak"
         return m
