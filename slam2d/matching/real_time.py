@@ -20,8 +20,7 @@ Sec. IV: weights exp(N·(s − s_best)), i.e. the summed probability treated as 
 The covariance is taken from the scores *without* the delta penalty (the penalty is a
 preference for the prediction, not evidence from the scan), in the map (submap grid) x/y
 axes. A window can be as small as one cell, which truncates the distribution (and a 3 × 3
-lattice cannot even step along a corridor that is not axis-aligned), so where the moments
-show a truncated distribution (``truncated``) the moment
+lattice cannot even step along a corridor that is not axis-aligned), so the moment
 covariance is widened to cover the curvature (Laplace) covariance of the log-likelihood at
 the peak, fitted on its 3 × 3 × 3 neighbourhood; directions the scan does not bound (less
 curvature than the prior's information) get the variance of an unmatched scan
@@ -153,29 +152,9 @@ def _covariance(scores, params: SearchParameters, n_points: int, prior: np.ndarr
     _kernels.score_covariance(scores, offs, angles, float(n_points), cov)
     floor = np.array([res * res / 12.0, res * res / 12.0, params.angular_step ** 2 / 12.0])
     cov[np.diag_indices(3)] += floor
-    if prior is not None and truncated(cov, w, res, angles):
+    if prior is not None:
         cov = _cover(cov, _laplace(scores, offs, angles, float(n_points), prior))
     return cov
-
-
-#: a window of fewer lattice poses than this each side of the centre (per axis) is too small for its
-#: moments to show whether it cut the distribution short
-MIN_POSES_TO_JUDGE = 3
-
-
-def truncated(cov: np.ndarray, linear_cells: int, resolution: float, angles: np.ndarray) -> bool:
-    """Whether the window may have cut the score distribution short: it is too small to tell
-    (``MIN_POSES_TO_JUDGE``), or some axis's standard deviation exceeds a third of the window's
-    half-width (a Gaussian that narrow has 99.7 % of its mass inside). Only then is the moment
-    covariance raised to the curvature's (``_laplace``): the
-    quadratic is fitted on the 3 × 3 × 3 lattice poses around the peak, and at a fine angular step
-    a sharp rotation peak changes the score there by less than one point crossing a cell, so
-    its fitted curvature is noise, often of the wrong sign, which would give a well-determined
-    rotation the whole window as its uncertainty."""
-    if linear_cells < MIN_POSES_TO_JUDGE or len(angles) < 2 * MIN_POSES_TO_JUDGE + 1:
-        return True
-    half = np.array([linear_cells * resolution, linear_cells * resolution, float(np.abs(angles).max())])
-    return bool((np.sqrt(np.maximum(np.diag(cov), 0.0)) > half / 3.0).any())
 
 
 def _laplace(scores, offs, angles, n_points, prior) -> np.ndarray:
