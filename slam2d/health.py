@@ -13,7 +13,9 @@ Two kinds of evidence:
   front of the other's return. A pair is only as bad as the *better* of its two directions: a
   person who walked through one scan violates the other's free space in one direction only,
   a wrong pose in both. A node disagrees when its mean violation share exceeds
-  ``MAX_VIOLATION``. Ray tests, not a rasterised vote map: a map of 5 cm cells erases thin walls
+  ``MAX_VIOLATION``. Where the robot came back, the same test is also taken against the other
+  passes alone (``free_space_checks``): neighbours from one pass drifted together and agree with
+  each other, so a loop that was never closed shows only there. Ray tests, not a rasterised vote map: a map of 5 cm cells erases thin walls
   seen at grazing angles by sparse beams (1° at 20 m is 35 cm), which made correct maps of
   spatially sparse logs look broken.
 * **What local and global SLAM said along the way**: matches that could not be trusted,
