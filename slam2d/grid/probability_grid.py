@@ -154,7 +154,7 @@ class ProbabilityGrid:
         first = self.scan_id + 1
         self.scan_id += batch.count
         n = threads or numba.get_num_threads()
-        o, e = batch.in_cells(self.origin, self.resolution)
+        o, e = batch.to_cells(self.origin, self.resolution)
         _kernels.insert_scans_striped(self.logodds, self.prob, self.stamp, first, o, e, batch.starts, batch.n_hits,
                                       self.hit_delta, self.miss_delta, self.lo_min, self.lo_max, max(1, int(n)))
         if self.field_sigma:
@@ -276,13 +276,8 @@ class _ScanBatch:
         self.starts[1:] = np.cumsum([len(h) + len(m) for _, h, m in scans])
         self.n_hits = np.array([len(h) for _, h, _ in scans], dtype=np.int64)
 
-    def in_cells(self, origin, resolution):
-        """(origins, ends) in cell units of a grid with this origin and resolution."""
-        return (np.ascontiguousarray((self.origins - origin) / resolution),
-                np.ascontiguousarray((self.ends - origin) / resolution))
-
     def to_cells(self, origin, resolution):
-        """``in_cells`` without a copy: the batch's own arrays are converted (the same arithmetic)."""
+        """(origins, ends) converted, in place, to cell units of a grid with this origin and resolution."""
         for a in (self.origins, self.ends):
             a -= origin
             a /= resolution
