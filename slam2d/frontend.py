@@ -116,6 +116,25 @@ def degenerate_direction(points: np.ndarray) -> np.ndarray | None:
     return v[:, 0]
 
 
+def observed_scores(submap_grid, match_grid, poses, points: np.ndarray) -> list[float] | None:
+    """The mean ``match_grid`` value of the points that every pose of ``poses`` puts on an observed
+    cell of ``submap_grid``, one figure per pose; None when no point does.
+
+    A point that falls on never-observed space scores nothing, so of two candidate poses the one
+    that moves more points onto the mapped part of the submap scores higher, right or not: in a
+    corridor a scan slid back along it lays its far end onto walls already mapped, while at the
+    true pose that end sees new ground. Judged only on the points both poses can be checked by,
+    that bias is gone and the comparison is between the poses' geometry.
+    """
+    cells = [match_grid.cells(points, p, np.zeros(1))[0] for p in poses]
+    common = np.ones(len(points), dtype=bool)
+    for c in cells:
+        common &= submap_grid.observed_at(c)
+    if not common.any():
+        return None
+    return [float(match_grid.values[c[common, 1], c[common, 0]].mean()) for c in cells]
+
+
 class LocalSlam:
     name = "local"
 
@@ -170,6 +189,13 @@ class LocalSlam:
         """Below this, no pose of the recovery lattice ``params`` can score ``limit`` once the delta
         penalty is taken off."""
         return float(np.nextafter(limit * self.wide_matcher.penalty.smallest_factor(params), -np.inf))
+
+    @staticmethod
+    def _better_where_observed(submap, grid, wide, m, points) -> bool:
+        if m.on_edge:  # not a peak: nothing to compare with
+            return True
+        common = observed_scores(submap.grid, grid, [wide.pose, m.pose], points)
+        return common is not None and common[0] > common[1]
 
     def _recover(self, grid, scan, predicted, points, limit, floor=0.0):
         """Branch-and-bound over the recovery windows around each distinct prediction, in the order the
@@ -250,7 +276,10 @@ class LocalSlam:
                 self.num_recovery_searches += 1
                 # a recovered pose replaces the match only when it is trusted where the match was not:
                 # a wide window always holds some pose that scores a little higher, often a wrong one
-                if wide is not None and (m is None or (wide.score > m.score and (limit is None or wide.score >= limit))):
+                # and when it also beats the match on the points both put on observed cells (a wide
+                # window holds poses that score higher only by laying new ground onto mapped cells)
+                if wide is not None and (m is None or (wide.score > m.score and (limit is None or wide.score >= limit)
+                                                       and self._better_where_observed(submap, grid, wide, m, points))):
                     m = wide
                     self.num_recovered += 1
             t2 = time.perf_counter()

@@ -20,6 +20,7 @@ import numpy as np
 from slam2d.backend.consistency import ConsistencyParams, inconsistent, pair_matrix
 from slam2d.backend.loop_closure import StackCache, SubmapMatcher, loop_points
 from slam2d.backend.pose_graph import PoseGraph
+from slam2d.backend.wide_search import chain_distances, coarse_grid, coarse_match, frame_offset, submap_content
 from slam2d.geometry import between, compose, inverse
 from slam2d.matching.real_time import unmatched_covariance
 
@@ -42,6 +43,9 @@ class GlobalSlam:
         self.matchers: dict[int, SubmapMatcher] = {}
         self.min_scores: dict[int, float] = {}  # per finished submap: the score a loop match must reach
         self.stacks = StackCache(STACK_CACHE_BYTES)
+        self.coarse = {}  # per finished submap: its coarse grid for the wide search, made on first use
+        self.wide_searches = 0
+        self.wide_accepted = 0
         self.sampled: list[int] = []  # nodes matched against finished submaps (and new submaps against them)
         self.sample_distance = cfg.motion_filter.max_distance
         self._last_pose, self._since_sample, self._travel = None, 0, 0.0
@@ -148,6 +152,7 @@ class GlobalSlam:
                 cands.append((d, j))
         for _, j in sorted(cands)[: self.lc.max_searches_per_submap]:
             self._search(submap.index, j)
+        self._search_wide(submap)
 
     # ---- searching
     def _search_node(self, j):
@@ -164,12 +169,15 @@ class GlobalSlam:
         for _, k in sorted(cands)[: self.lc.max_submaps_per_node]:
             self._search(k, j)
 
-    def _search(self, k, j):
+    def _search(self, k, j, initial=None, defer: bool = False):
+        """Match node ``j`` against submap ``k`` around ``initial`` (its pose in the submap's grid frame;
+        default: from the current global estimates). The record is kept and an accepted match
+        becomes a loop constraint, unless ``defer``: then both are returned for ``_commit``."""
         m = self.matchers[k]
         node = self.nodes[j]
-        # the node's pose in the submap's grid frame, from the current global estimates
-        rel = between(self.global_submap(k), self.global_node(j))
-        initial = compose(m.submap.local_pose, rel)
+        if initial is None:
+            rel = between(self.global_submap(k), self.global_node(j))
+            initial = compose(m.submap.local_pose, rel)
         lc = self.lc
         t0 = time.perf_counter()
         min_score = self.min_scores[k]
@@ -187,6 +195,7 @@ class GlobalSlam:
         rec = {"submap": int(k), "from_scan": int(frm), "to_scan": int(j),
                "from_stamp": self.nodes[frm]["stamp"], "to_stamp": node["stamp"],
                "search_ms": round(dt * 1e3, 3), "min_score": round(min_score, 4)}
+        loop = None
         if res is None:
             rec.update({"relative_pose": None, "score": None, "accepted": False, "reason": f"no match above {min_score:.3f}",
                         "in_final_graph": False})
@@ -200,9 +209,108 @@ class GlobalSlam:
                         "accepted": res.reason is None, "reason": res.reason or "accepted",
                         "in_final_graph": res.reason is None})
             if res.reason is None:
-                self.graph.add_loop(frm, j, relative, cov, rec)
+                loop = (frm, j, relative, cov)
+        if defer:
+            return rec, loop, res
+        self._commit(rec, loop)
+        return rec, loop, res
+
+    def _commit(self, rec, loop):
+        if loop is not None:
+            self.graph.add_loop(*loop, rec)
         self.records.append(rec)
         self.observer.on_loop_candidate(rec)
+
+    def _reject(self, rec, reason):
+        rec.update({"accepted": False, "reason": reason, "in_final_graph": False})
+        self._commit(rec, None)
+
+    def _transform(self, k) -> np.ndarray:
+        """global ← local transform of submap ``k``'s grid (from its first node)."""
+        a = self.submap_anchor[k]
+        return compose(self.global_node(a), inverse(self.nodes[a]["local"]))
+
+    def _path_of(self, k) -> float:
+        path = [self.nodes[j]["path"] for j in self.matchers[k].submap.node_indices if j in self.nodes]
+        return float(np.mean(path)) if path else 0.0
+
+    def _search_wide(self, submap):
+        """A finished submap against older ones the drift may have carried beyond the regular window
+        (``wide_search.py``)."""
+        lc = self.lc
+        s = submap.index
+        own = [j for j in submap.node_indices if j in self.nodes]
+        targets = {k: self._path_of(k) for k in self.matchers if k < s - lc.exclude_recent_submaps}
+        if not own or not targets:
+            return
+        shortcuts = [(self.nodes[f.anchor]["path"], self.nodes[f.node]["path"]) for f in self.graph.loops]
+        dist = chain_distances(self._path_of(s), targets, shortcuts)
+        content = submap_content(submap.grid)
+        if len(content) < 3:
+            return
+        centre = np.r_[content.mean(axis=0), 0.0]
+        t_s = self._transform(s)
+        centre_g = compose(t_s, centre)
+        cands = []
+        for k, d in dist.items():
+            lin = min(lc.consistency_drift * d, lc.max_constraint_distance)
+            ang = min(math.radians(lc.consistency_drift_deg) * d, math.pi)
+            if lin <= lc.linear_search_window and ang <= math.radians(lc.angular_search_window_deg):
+                continue  # within the regular search's reach
+            m = self.matchers[k]
+            c_k = compose(self._transform(k), np.r_[m.center_local, 0.0])
+            dc = float(np.hypot(*(c_k[:2] - centre_g[:2])))
+            if dc < lc.max_constraint_distance + lin:
+                cands.append((dc, k, lin, ang))
+        for _, k, lin, ang in sorted(cands)[: lc.max_submaps_per_node]:
+            self._wide_pair(submap, own, content, centre, t_s, k, lin, ang)
+
+    def _wide_pair(self, submap, own, content, centre, t_s, k, lin, ang):
+        lc = self.lc
+        t0 = time.perf_counter()
+        if k not in self.coarse:
+            self.coarse[k] = coarse_grid(self.matchers[k].submap.grid)
+        initial = compose(inverse(self._transform(k)), compose(t_s, centre))
+        found = coarse_match(content, centre, initial, self.coarse[k], lin, ang)
+        self.wide_searches += 1
+        self.search_seconds += time.perf_counter() - t0
+        if found is None:
+            return
+        x = compose(found[0], inverse(centre))  # submap s's local frame -> submap k's grid frame
+        # the two of the submap's nodes whose points land on most of k's observed cells there
+        grid = self.matchers[k].submap.grid
+        counts = []
+        for j in own:
+            pts = self.nodes[j]["points"]
+            if len(pts):
+                cells = self.matchers[k].grid.cells(pts, compose(x, self.nodes[j]["local"]), np.zeros(1))[0]
+                counts.append((int(grid.observed_at(cells).sum()), j))
+        pair = [j for n, j in sorted(counts, reverse=True)[:2] if n > 0]
+        if len(pair) < 2:
+            return
+        found_by = []
+        for j in pair:
+            rec, loop, res = self._search(k, j, initial=compose(x, self.nodes[j]["local"]), defer=True)
+            rec["search"] = f"wide ±{lin:.1f} m ±{math.degrees(ang):.0f}°, coarse score {found[1]:.3f}"
+            found_by.append((rec, loop, res, j))
+        if any(loop is None for _, loop, _, _ in found_by):
+            for rec, loop, _, _ in found_by:
+                if loop is None:
+                    self._commit(rec, None)
+                else:
+                    self._reject(rec, "wide search: its partner node failed verification")
+            return
+        (_, _, r1, j1), (_, _, r2, j2) = found_by
+        dt, dr = frame_offset(compose(r1.pose, inverse(self.nodes[j1]["local"])),
+                              compose(r2.pose, inverse(self.nodes[j2]["local"])), centre)
+        if dt > lc.consistency_translation or dr > math.radians(lc.consistency_rotation_deg):
+            for rec, _, _, _ in found_by:
+                self._reject(rec, f"wide search: its two nodes disagree by {dt:.2f} m, {math.degrees(dr):.1f}°")
+            return
+        for rec, loop, _, _ in found_by:
+            self._commit(rec, loop)
+        self.wide_accepted += 2
+        self.optimize()  # later searches start from the corrected estimates
 
     # ---- optimization
     def optimize(self, final: bool = False):
@@ -264,6 +372,7 @@ class GlobalSlam:
             self.gnc_removed = len(self.graph.gnc_prune())
             self.optimize_seconds += time.perf_counter() - t0
         self.optimize(final=True)
+        self.coarse.clear()
         self.stacks.clear()  # no more searches: the precomputation stacks go before the map is built
         for m in self.matchers.values():  # ... and so do the search grids (Slam.finish releases the submaps')
             m.grid = None
@@ -278,7 +387,7 @@ class GlobalSlam:
             "rejected_verification": found - acc, "removed_inconsistent": self.consistency_removed,
             "removed_gnc": self.gnc_removed,
             "removed_after_optimization": len(self.graph.removed) - self.consistency_removed - self.gnc_removed,
-            "in_final_graph": final,
+            "in_final_graph": final, "wide_searches": self.wide_searches, "wide_accepted": self.wide_accepted,
             "search_total_s": round(self.search_seconds, 3), "stack_builds": self.stacks.builds,
             "search_mean_ms": round(1e3 * self.search_seconds / self.searches, 3) if self.searches else None,
             "optimizations": self.optimizations, "optimize_total_s": round(self.optimize_seconds, 3),

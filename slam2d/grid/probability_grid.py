@@ -79,6 +79,18 @@ class ProbabilityGrid:
             return self._known
         return (self.stamp > 0).view(np.uint8)
 
+    def observed_at(self, cells: np.ndarray) -> np.ndarray:
+        """For cells (N, 2) as [col, row]: True where the cell lies in the grid and was observed."""
+        rows, cols = self.shape
+        c, r = cells[:, 0], cells[:, 1]
+        inside = (c >= 0) & (r >= 0) & (c < cols) & (r < rows)
+        out = np.zeros(len(cells), dtype=bool)
+        if self._known is not None:
+            out[inside] = self._known[r[inside], c[inside]] > 0
+        else:
+            out[inside] = self.stamp[r[inside], c[inside]] > 0
+        return out
+
     def freeze(self, r0, r1, c0, c1):
         """Crop to [r0:r1, c0:c1] and drop the insertion buffers (no more inserts)."""
         known = np.ascontiguousarray(self.known[r0:r1, c0:c1])

@@ -1,0 +1,118 @@
+"""Loop search after a long stretch without loop closure (Hess et al. 2016, Sec. V-C, with the
+search window of Olson 2009's multi-resolution matcher sized by the drift model).
+
+The regular search (``global_slam.GlobalSlam._search``) looks ``linear_search_window`` /
+``angular_search_window_deg`` around the current estimate. Two places are linked by the pose
+graph through the shortest stretch of local SLAM between them, loop closures being
+shortcuts; after ``D`` metres of it their relative pose is uncertain up to the drift model's
+3σ bound (``consistency_drift`` · D, ``consistency_drift_deg`` · D), which can exceed that
+window: a robot back at its start after a long tour with no loop on the way, or a corridor
+walked again from its other end. Then the single-scan search misses the revisit, and a single
+scan in a corridor is too ambiguous over a window of many metres.
+
+So, when a submap is finished and an older submap near it is farther than the regular window
+can reach, the finished submap's whole content (its occupied cells) is matched against the
+older one with the drift-sized window: coarse first, on grids max-pooled to a few cells per
+metre, where branch-and-bound searches every rotation and offset of the window exactly. A
+never-observed cell scores 0.5 there (no evidence either way), so partial overlap of two
+submaps does not favour poses that pile the content onto mapped cells, while content laid on
+observed free space scores low. The coarse pose is only a start: two of the submap's nodes
+are then matched from it by the regular, verified single-scan search, and both must pass
+verification and agree on where the submap lies (within ``consistency_translation`` /
+``consistency_rotation_deg``) before either becomes a loop constraint.
+"""
+from __future__ import annotations
+
+import heapq
+import math
+
+import numpy as np
+
+from slam2d.geometry import between, compose
+from slam2d.matching.search import MatchGrid, PrecomputationStack, SearchParameters, branch_and_bound
+from slam2d.range_data import voxel_filter
+
+#: cells of the regular grid pooled into one coarse cell, per side
+COARSE_FACTOR = 4
+#: what a never-observed cell scores in the coarse search (probability × 255: no evidence)
+NEUTRAL = 128
+
+
+def chain_distances(source: float, targets: dict[int, float], shortcuts: list[tuple[float, float]]) -> dict[int, float]:
+    """For each target (a position along the local SLAM path, in metres), the shortest distance
+    from ``source`` walking along the path, where each shortcut (two path positions joined by a
+    loop closure) costs nothing. Dijkstra over the positions involved."""
+    pos = sorted({float(source), *map(float, targets.values()), *(float(p) for s in shortcuts for p in s)})
+    index = {p: i for i, p in enumerate(pos)}
+    jumps: dict[int, list[int]] = {}
+    for a, b in shortcuts:
+        ia, ib = index[float(a)], index[float(b)]
+        jumps.setdefault(ia, []).append(ib)
+        jumps.setdefault(ib, []).append(ia)
+    dist = [math.inf] * len(pos)
+    start = index[float(source)]
+    dist[start] = 0.0
+    heap = [(0.0, start)]
+    while heap:
+        d, i = heapq.heappop(heap)
+        if d > dist[i]:
+            continue
+        steps = [(i + 1, pos[i + 1] - pos[i]) if i + 1 < len(pos) else None,
+                 (i - 1, pos[i] - pos[i - 1]) if i > 0 else None]
+        steps += [(j, 0.0) for j in jumps.get(i, ())]
+        for step in steps:
+            if step is None:
+                continue
+            j, w = step
+            if d + w < dist[j]:
+                dist[j] = d + w
+                heapq.heappush(heap, (d + w, j))
+    return {k: dist[index[float(p)]] for k, p in targets.items()}
+
+
+def coarse_grid(grid) -> MatchGrid:
+    """A finished submap's probabilities (uint8) max-pooled over ``COARSE_FACTOR`` cells a side, never
+    observed cells at ``NEUTRAL``."""
+    f = COARSE_FACTOR
+    q = np.where(grid.known > 0, grid.prob, np.uint8(NEUTRAL)).astype(np.uint8)
+    rows, cols = q.shape
+    pr, pc = -rows % f, -cols % f
+    q = np.pad(q, ((0, pr), (0, pc)), constant_values=NEUTRAL)
+    pooled = q.reshape(q.shape[0] // f, f, q.shape[1] // f, f).max(axis=(1, 3))
+    return MatchGrid(np.ascontiguousarray(pooled), grid.origin.copy(), grid.resolution * f, float(NEUTRAL))
+
+
+def submap_content(grid) -> np.ndarray:
+    """Centres (local frame) of a finished submap's cells more likely occupied than not (hit more often
+    than the misses cancel), thinned to one per coarse cell."""
+    rows, cols = np.nonzero((grid.known > 0) & (grid.prob > NEUTRAL))
+    pts = grid.origin + (np.stack([cols, rows], axis=1) + 0.5) * grid.resolution
+    return voxel_filter(pts, grid.resolution * COARSE_FACTOR)
+
+
+def coarse_match(content: np.ndarray, centre: np.ndarray, initial, target: MatchGrid, linear_window: float,
+                 angular_window: float):
+    """The best pose (in ``target``'s frame) of the frame at ``centre`` (x, y in the content's frame)
+    within the windows around ``initial``, and its score in [0, 1]; rotations are about ``centre``."""
+    pts = content - centre[:2]
+    params = SearchParameters.make(linear_window, angular_window, target.resolution, pts)
+    depth = max(1, int(math.ceil(math.log2(2 * params.linear_cells + 1))))
+    stack = PrecomputationStack(target, depth)
+    cells = target.cells(pts, initial, params.angles)
+    found = branch_and_bound(stack, cells, params.linear_cells, 0.0)
+    if found is None:
+        return None
+    a, dx, dy, score = found
+    pose = np.array([initial[0] + dx * target.resolution, initial[1] + dy * target.resolution,
+                     initial[2] + params.angles[a]])
+    return pose, score / 255.0
+
+
+def frame_offset(x1, x2, centre) -> tuple[float, float]:
+    """How far apart two transforms of one frame put the point ``centre`` (m) and its heading (rad)."""
+    c = np.array([centre[0], centre[1], 0.0])
+    d = between(compose(x1, c), compose(x2, c))
+    return float(math.hypot(d[0], d[1])), abs(float(d[2]))
+
+
+__all__ = ["chain_distances", "coarse_grid", "submap_content", "coarse_match", "frame_offset"]

@@ -1,0 +1,111 @@
+"""The loop search after a long stretch without loop closure (slam2d/backend/wide_search.py)."""
+import itertools
+import math
+
+import numpy as np
+
+from slam2d.backend.wide_search import (COARSE_FACTOR, NEUTRAL, chain_distances, coarse_grid, coarse_match,
+                                        frame_offset, submap_content)
+from slam2d.geometry import between, compose, inverse
+from slam2d.grid.probability_grid import ProbabilityGrid
+from slam2d.io.simulator import floor_plan, raycast
+
+ANGLES = -math.pi + 2 * math.pi / 360 * np.arange(360)
+
+
+def _grid(segs, poses, max_range=12.0):
+    """A finished submap grid (uint8 probabilities and a known mask) of scans taken at ``poses``."""
+    g = ProbabilityGrid(0.05)
+    for p in poses:
+        r = raycast(segs, p[:2], ANGLES + p[2], max_range)
+        ok = np.isfinite(r)
+        pts = np.stack([r[ok] * np.cos(ANGLES[ok]), r[ok] * np.sin(ANGLES[ok])], axis=1)
+        g.insert(p[:2], compose(p, np.c_[pts, np.zeros(len(pts))])[:, :2])
+    g.freeze(*g.known_bounds())
+    return g
+
+
+def _brute_chain(source, targets, shortcuts):
+    """Shortest walk along the line where shortcuts are free: every order of using them, brute force."""
+    out = {}
+    for k, t in targets.items():
+        best = abs(t - source)
+        ends = [(a, b) for a, b in shortcuts] + [(b, a) for a, b in shortcuts]
+        for n in range(1, 4):
+            for seq in itertools.permutations(ends, n):
+                d, at = 0.0, source
+                for a, b in seq:
+                    d += abs(a - at)
+                    at = b
+                best = min(best, d + abs(t - at))
+        out[k] = best
+    return out
+
+
+def test_chain_distance_is_the_shortest_walk_with_loops_as_shortcuts():
+    rng = np.random.default_rng(3)
+    for _ in range(40):
+        shortcuts = [tuple(rng.uniform(0, 100, 2).round(1)) for _ in range(int(rng.integers(0, 4)))]
+        targets = {i: float(v) for i, v in enumerate(rng.uniform(0, 100, 5).round(1))}
+        source = round(float(rng.uniform(0, 100)), 1)
+        got = chain_distances(source, targets, shortcuts)
+        want = _brute_chain(source, targets, shortcuts)
+        for k in targets:
+            assert math.isclose(got[k], want[k], abs_tol=1e-9), (source, targets, shortcuts)
+    # no loops: the path between them; a loop from the far end back to the start: almost nothing
+    assert chain_distances(500.0, {0: 10.0}, []) == {0: 490.0}
+    assert chain_distances(500.0, {0: 10.0}, [(495.0, 12.0)]) == {0: 7.0}
+
+
+def test_coarse_grid_is_the_block_maximum_with_unobserved_cells_neutral():
+    segs = floor_plan()
+    g = _grid(segs, [np.array([6.0, 1.25, 0.0]), np.array([14.0, 6.0, 0.5])])
+    c = coarse_grid(g)
+    f = COARSE_FACTOR
+    q = np.where(g.known > 0, g.prob, NEUTRAL).astype(np.uint8)
+    rows, cols = q.shape
+    assert c.values.shape == (math.ceil(rows / f), math.ceil(cols / f))
+    for r, col in [(0, 0), (3, 7), (c.values.shape[0] - 1, c.values.shape[1] - 1), (10, 20)]:
+        block = q[r * f:(r + 1) * f, col * f:(col + 1) * f]
+        pad = block.size < f * f  # the last row/column of blocks is padded with unobserved cells
+        want = max(int(block.max()), NEUTRAL) if pad else int(block.max())
+        assert int(c.values[r, col]) == want
+    assert np.allclose(c.origin, g.origin) and math.isclose(c.resolution, 0.05 * f)
+
+
+def test_coarse_match_finds_a_submap_moved_far_beyond_the_regular_window():
+    """The content of one submap, moved by 6 m and 70° (drift), is put back onto an older submap of
+    the same place, also when the true pose lies near the older submap's border."""
+    segs = floor_plan()
+    older = _grid(segs, [np.array([x, 6.0, 0.0]) for x in np.linspace(4.0, 26.0, 12)])
+    target = coarse_grid(older)
+    for path in ([np.array([x, 6.0, 0.3]) for x in np.linspace(5.0, 15.0, 6)],      # the middle
+                 [np.array([x, 1.25, 0.0]) for x in np.linspace(20.0, 28.5, 5)]):    # the bottom-right corner
+        newer = _grid(segs, path)
+        content = submap_content(newer)
+        centre = np.r_[content.mean(axis=0), 0.0]
+        # where local SLAM put the newer submap: turned by 70° about its centre and moved 6 m
+        drift = compose(compose(centre, np.array([4.0, -4.5, math.radians(70.0)])), inverse(centre))
+        moved = compose(drift, np.c_[content, np.zeros(len(content))])[:, :2]
+        moved_centre = compose(drift, centre)
+        found = coarse_match(moved, np.r_[moved_centre[:2], 0.0], np.r_[moved_centre[:2], 0.0], target, 8.0,
+                             math.radians(90.0))
+        assert found is not None
+        pose, score = found
+        # the true pose of the moved centre frame: undo the drift
+        truth = compose(inverse(drift), np.r_[moved_centre[:2], 0.0])
+        dt, dr = frame_offset(pose, truth, np.zeros(3))
+        assert dt < 2 * target.resolution and dr < math.radians(3.0), (dt, math.degrees(dr))
+        assert score > NEUTRAL / 255.0
+        # and the search at the drifted pose alone does not get there
+        d0 = between(truth, np.r_[moved_centre[:2], 0.0])
+        assert math.hypot(d0[0], d0[1]) > 3.0
+
+
+def test_frame_offset_measures_at_the_given_point():
+    a = np.array([1.0, 2.0, 0.3])
+    b = compose(a, np.array([0.0, 0.0, math.radians(1.0)]))  # the same origin, turned by 1°
+    dt0, dr0 = frame_offset(a, b, np.zeros(3))
+    dt, dr = frame_offset(a, b, np.array([20.0, 0.0, 0.0]))  # 20 m away that turn is 0.35 m
+    assert dt0 < 1e-9 and math.isclose(dr0, math.radians(1.0), rel_tol=1e-9)
+    assert math.isclose(dt, 20 * 2 * math.sin(math.radians(0.5)), rel_tol=1e-6)
