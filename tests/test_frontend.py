@@ -204,3 +204,59 @@ def test_recovery_floor_keeps_a_match_that_only_the_penalty_pushes_below_the_lim
     assert floored.score == found.score >= limit
     np.testing.assert_array_equal(tracker._recover(grid, scan, predicted, points, limit).pose, found.pose)
     assert tracker._recover(grid, scan, predicted, points, limit, np.nextafter(limit, -1)) is None
+
+
+def _observed_world():
+    """A 100 × 100 cell grid observed in its left 60 columns, with occupied cells (value 1) where
+    ``P1`` lands at pose A and where ``P2`` lands at pose B (30 cells to the left of A); ``P2`` at
+    A lies on unobserved ground, ``P1`` at B on observed free cells."""
+    from slam2d.grid.probability_grid import ProbabilityGrid
+    from slam2d.matching.search import MatchGrid
+
+    g = ProbabilityGrid(0.1, field_sigma=0.1)
+    g.ensure_contains(0.0, 0.0, 9.99, 9.99)
+    origin = g.origin.copy()
+    g.stamp[:, :] = 0
+    col0 = int(round(-origin[0] / 0.1))  # the column holding x = 0
+    g.stamp[:, : col0 + 60] = 1
+    field = np.zeros(g.shape, dtype=np.float32)
+    p1 = np.array([[5.05, 1.05 + 0.3 * i] for i in range(10)])     # at A: cells of column 50
+    p2 = np.array([[6.55, 0.55 + 0.3 * i] for i in range(20)])     # at A: column 65 (unobserved)
+    for pts in (p1, p2 - [3.0, 0.0]):  # occupied where P1 lands at A and where P2 lands at B
+        c = np.floor((pts - origin) / 0.1).astype(int)
+        field[c[:, 1], c[:, 0]] = 1.0
+    g.field = field
+    return g, MatchGrid(field, origin, 0.1, 0.0), np.vstack([p1, p2])
+
+
+def test_observed_scores_judge_two_poses_on_the_points_both_put_on_observed_cells():
+    from slam2d.frontend import observed_scores
+
+    g, mg, pts = _observed_world()
+    a, b = np.zeros(3), np.array([-3.0, 0.0, 0.0])
+
+    def full(pose):  # the matcher's score: every point, unobserved ones scoring 0
+        c = mg.cells(pts, pose, np.zeros(1))[0]
+        return float(mg.values[c[:, 1], c[:, 0]].mean())
+
+    assert full(b) > full(a)  # the bias: B lays P2 onto mapped cells that are unobserved at A
+    common = observed_scores(g, mg, [a, b], pts)
+    # the plain-numpy reference: only P1 is on observed cells at both poses; at A on walls, at B on free cells
+    assert common == [1.0, 0.0]
+    # a pose that puts no point on observed cells together with A: nothing to compare
+    assert observed_scores(g, mg, [a, np.array([6.0, 0.0, 0.0])], pts) is None
+
+
+def test_a_recovered_pose_must_win_where_both_poses_are_observed():
+    from types import SimpleNamespace
+
+    from slam2d.matching.real_time import MatchResult
+
+    g, mg, pts = _observed_world()
+    sub = SimpleNamespace(grid=g)
+    peak = MatchResult(np.zeros(3), 10 / 30, 1)                       # an in-window peak (A) that scores low
+    wide = MatchResult(np.array([-3.0, 0.0, 0.0]), 20 / 30, 1)        # the recovery's better-scoring pose (B)
+    assert not LocalSlam._better_where_observed(sub, mg, wide, peak, pts)
+    assert LocalSlam._better_where_observed(sub, mg, peak, wide, pts)  # the other way round it wins
+    edge = MatchResult(np.zeros(3), 10 / 30, 1, on_edge=True)         # no peak to compare with: the recovery decides
+    assert LocalSlam._better_where_observed(sub, mg, wide, edge, pts)

@@ -109,3 +109,81 @@ def test_frame_offset_measures_at_the_given_point():
     dt, dr = frame_offset(a, b, np.array([20.0, 0.0, 0.0]))  # 20 m away that turn is 0.35 m
     assert dt0 < 1e-9 and math.isclose(dr0, math.radians(1.0), rel_tol=1e-9)
     assert math.isclose(dt, 20 * 2 * math.sin(math.radians(0.5)), rel_tol=1e-6)
+
+
+def _scan_points(segs, pose, max_range=12.0):
+    r = raycast(segs, pose[:2], ANGLES + pose[2], max_range)
+    ok = np.isfinite(r)
+    return np.stack([r[ok] * np.cos(ANGLES[ok]), r[ok] * np.sin(ANGLES[ok])], axis=1)
+
+
+def _submap(index, segs, true_poses, local_poses):
+    from types import SimpleNamespace
+
+    g = ProbabilityGrid(0.05)
+    for t, p in zip(true_poses, local_poses):
+        pts = _scan_points(segs, t)
+        g.insert(p[:2], compose(p, np.c_[pts, np.zeros(len(pts))])[:, :2])
+    g.freeze(*g.known_bounds())
+    return SimpleNamespace(grid=g, local_pose=np.asarray(local_poses[0], float), index=index, node_indices=[])
+
+
+def _global_slam_with_a_return(detour: float):
+    """Submap 0 maps a corridor; after ``detour`` metres of driving elsewhere the robot maps it again
+    (submap 3), but local SLAM's frame has drifted by 5 m and 40° about the corridor's middle."""
+    from types import SimpleNamespace
+
+    from slam2d.backend.global_slam import GlobalSlam
+    from slam2d.config import SlamConfig
+
+    segs = floor_plan()
+    cfg = SlamConfig()
+    gs = GlobalSlam(cfg)
+    first = [np.array([x, 6.0, 0.0]) for x in np.linspace(4.0, 26.0, 23)]
+    again = [np.array([x, 6.0, math.pi]) for x in np.linspace(24.0, 8.0, 17)]
+    mid = np.array([15.0, 6.0, 0.0])
+    drift = compose(compose(mid, np.array([3.0, -4.0, math.radians(40.0)])), inverse(mid))
+
+    def node(j, true, local, submap):
+        scan = SimpleNamespace(index=j, timestamp=float(j), timestamp_text=None)
+        gs.add_node(scan, local, _scan_points(segs, true), None, [(submap.index, submap.local_pose)])
+        submap.node_indices.append(j)
+
+    s0 = _submap(0, segs, first, first)
+    for j, p in enumerate(first):
+        node(j, p, p, s0)
+    gs.add_finished_submap(s0)
+    j = len(first)
+    if detour:  # somewhere far away and back: the path between the two passes grows by 2 × detour
+        far = SimpleNamespace(index=1, local_pose=np.array([15.0, 6.0 + detour, 0.0]), node_indices=[])
+        for p in (np.array([15.0, 6.0 + detour, 0.0]), ):
+            gs.add_node(SimpleNamespace(index=j, timestamp=float(j), timestamp_text=None), p,
+                        np.zeros((0, 2)), None, [(far.index, far.local_pose)])
+            j += 1
+    local = [compose(drift, p) for p in again]
+    s3 = _submap(3, segs, again, local)
+    for t, p in zip(again, local):
+        node(j, t, p, s3)
+        j += 1
+    gs.add_finished_submap(s3)
+    return gs, first, again
+
+
+def test_a_return_beyond_the_regular_window_is_closed_by_the_wide_search():
+    gs, first, again = _global_slam_with_a_return(detour=1000.0)
+    wide = [r for r in gs.records if "wide" in r.get("search", "")]
+    assert gs.wide_searches >= 1 and wide
+    accepted = [r for r in wide if r["accepted"]]
+    assert len(accepted) == 2, [r["reason"] for r in wide]
+    n0 = len(first) + 1  # the first node of the second pass
+    for r in accepted:
+        truth = between(first[r["from_scan"]], again[r["to_scan"] - n0])
+        d = between(truth, np.array(r["relative_pose"]))
+        assert math.hypot(d[0], d[1]) < 0.1 and abs(d[2]) < math.radians(1.0), (r, truth)
+    # the regular search, from the drifted estimate, found none of it
+    assert not any(r["accepted"] for r in gs.records if "wide" not in r.get("search", ""))
+
+
+def test_no_wide_search_where_the_regular_window_covers_the_drift():
+    gs, _, _ = _global_slam_with_a_return(detour=0.0)
+    assert gs.wide_searches == 0
