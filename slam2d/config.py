@@ -125,6 +125,7 @@ class LoopClosureConfig(_Section):
     min_local_sigma_rotation_deg: float = Field(0.1, gt=0.0, description="Floor on their rotation sigma [deg].")
     local_drift: float = Field(0.01, ge=0.0, description="A node-in-submap constraint's translation sigma grows by this much per metre the robot travelled between the submap's first node and the node [m/m]: the submap itself was built by local SLAM along that path and drifted with it, which the match's score surface does not see.")
     local_drift_deg: float = Field(0.1, ge=0.0, description="... and its rotation sigma by this much per metre [deg/m].")
+    wide_search: bool = Field(True, description="When a submap is finished, match its content against older submaps nearby that the drift bound (consistency_drift, consistency_drift_deg times the shortest local-SLAM path between them, loops as shortcuts) may have carried beyond the regular window; at most max_constraint_distance and 180°. Two of its nodes must then pass verification and agree.")
     gnc_final: bool = Field(True, description="Before the final optimization, remove loops that graduated non-convexity (gtsam GncLMOptimizer, every local constraint a known inlier) weighs as outliers.")
     huber_scale: float = Field(5.0, gt=0.0, description="Huber threshold (in standard deviations) of the robust loop-constraint noise.")
     max_residual_translation: float = Field(0.2, gt=0.0, description="A loop constraint whose residual after optimization exceeds this [m] is removed.")

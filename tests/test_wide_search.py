@@ -187,3 +187,23 @@ def test_a_return_beyond_the_regular_window_is_closed_by_the_wide_search():
 def test_no_wide_search_where_the_regular_window_covers_the_drift():
     gs, _, _ = _global_slam_with_a_return(detour=0.0)
     assert gs.wide_searches == 0
+
+
+def test_wide_search_can_be_switched_off(monkeypatch):
+    from types import SimpleNamespace
+
+    import slam2d.backend.global_slam as gsmod
+    from slam2d.config import SlamConfig
+
+    calls = []
+    monkeypatch.setattr(gsmod.GlobalSlam, "_search_wide", lambda self, submap: calls.append(submap.index))
+    segs = floor_plan()
+    pose = np.array([6.0, 6.0, 0.0])
+    for cfg, want in ((SlamConfig(loop_closure={"wide_search": False}), []), (SlamConfig(), [0])):
+        gs = gsmod.GlobalSlam(cfg)
+        s0 = _submap(0, segs, [pose], [pose])
+        gs.add_node(SimpleNamespace(index=0, timestamp=0.0, timestamp_text=None), pose, _scan_points(segs, pose), None,
+                    [(0, pose)])
+        s0.node_indices.append(0)
+        gs.add_finished_submap(s0)
+        assert calls == want

@@ -152,7 +152,8 @@ class GlobalSlam:
                 cands.append((d, j))
         for _, j in sorted(cands)[: self.lc.max_searches_per_submap]:
             self._search(submap.index, j)
-        self._search_wide(submap)
+        if self.lc.wide_search:
+            self._search_wide(submap)
 
     # ---- searching
     def _search_node(self, j):
