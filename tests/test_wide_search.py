@@ -207,3 +207,15 @@ def test_wide_search_can_be_switched_off(monkeypatch):
         s0.node_indices.append(0)
         gs.add_finished_submap(s0)
         assert calls == want
+
+
+def test_coarse_match_finds_nothing_where_the_content_lies_off_the_map():
+    """No placement in the window puts the content on observed occupied cells: nothing scores above
+    the never-observed value, so there is no match (not a best-of-nothing pose)."""
+    segs = floor_plan()
+    target = coarse_grid(_grid(segs, [np.array([6.0, 6.0, 0.0])]))
+    content = submap_content(_grid(segs, [np.array([14.0, 6.0, 0.0])]))
+    centre = np.r_[content.mean(axis=0), 0.0]
+    far = np.array([200.0, 200.0, 0.0])  # the window lies wholly outside the older submap
+    assert coarse_match(content, centre, far, target, 3.0, math.radians(10.0)) is None
+    assert coarse_match(content, centre, centre, target, 3.0, math.radians(10.0)) is not None

@@ -93,13 +93,16 @@ def submap_content(grid) -> np.ndarray:
 def coarse_match(content: np.ndarray, centre: np.ndarray, initial, target: MatchGrid, linear_window: float,
                  angular_window: float):
     """The best pose (in ``target``'s frame) of the frame at ``centre`` (x, y in the content's frame)
-    within the windows around ``initial``, and its score in [0, 1]; rotations are about ``centre``."""
+    within the windows around ``initial``, and its score in [0, 1]; rotations are about ``centre``.
+    None when no placement scores above ``NEUTRAL`` (the content lies on free or unobserved cells)."""
     pts = content - centre[:2]
     params = SearchParameters.make(linear_window, angular_window, target.resolution, pts)
     depth = max(1, int(math.ceil(math.log2(2 * params.linear_cells + 1))))
     stack = PrecomputationStack(target, depth)
     cells = target.cells(pts, initial, params.angles)
-    found = branch_and_bound(stack, cells, params.linear_cells, 0.0)
+    # only placements with more evidence for than against (above the never-observed value) are of
+    # interest, so branch-and-bound may cut every subtree that cannot beat it
+    found = branch_and_bound(stack, cells, params.linear_cells, float(NEUTRAL))
     if found is None:
         return None
     a, dx, dy, score = found
