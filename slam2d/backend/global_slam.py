@@ -7,7 +7,8 @@ each newly finished submap against earlier nearby nodes; matches that pass verif
 covariance. Before each optimization, loops that contradict other loops through the local
 chain are removed (``consistency.py``); after it, loops with large residuals. The graph is
 optimized every ``optimize_every_n_nodes`` nodes and once at the end; submaps and nodes then
-move to their global poses. Every rejection's reason is kept in its constraints.jsonl record.
+move to their global poses. Where the drift since two places were last tied exceeds the regular
+window, a finished submap is also matched whole against older ones (``wide_search.py``). Every rejection's reason is kept in its constraints.jsonl record.
 """
 from __future__ import annotations
 
@@ -264,9 +265,11 @@ class GlobalSlam:
             if dc < lc.max_constraint_distance + lin:
                 cands.append((dc, k, lin, ang))
         for _, k, lin, ang in sorted(cands)[: lc.max_submaps_per_node]:
-            self._wide_pair(submap, own, content, centre, t_s, k, lin, ang)
+            self._wide_pair(own, content, centre, t_s, k, lin, ang)
 
-    def _wide_pair(self, submap, own, content, centre, t_s, k, lin, ang):
+    def _wide_pair(self, own, content, centre, t_s, k, lin, ang):
+        """The content of a finished submap (``own`` nodes, ``t_s`` its global ← local transform) against
+        submap ``k`` with the windows ``lin`` / ``ang``; a pair of agreeing node matches becomes two loops."""
         lc = self.lc
         t0 = time.perf_counter()
         if k not in self.coarse:
@@ -361,11 +364,7 @@ class GlobalSlam:
 
     def submap_transforms(self) -> dict[int, np.ndarray]:
         """global ← local transform of every finished submap's grid (from its first node)."""
-        out = {}
-        for k, m in self.matchers.items():
-            a = self.submap_anchor[k]
-            out[k] = compose(self.global_node(a), inverse(self.nodes[a]["local"]))
-        return out
+        return {k: self._transform(k) for k in self.matchers}
 
     def finish(self) -> dict[int, np.ndarray]:
         if self.lc.gnc_final and self.graph.loops:
