@@ -246,7 +246,14 @@ class GlobalSlam:
         if not own or not targets:
             return
         shortcuts = [(self.nodes[f.anchor]["path"], self.nodes[f.node]["path"]) for f in self.graph.loops]
-        dist = chain_distances(self._path_of(s), targets, shortcuts)
+        windows = {}
+        for k, d in chain_distances(self._path_of(s), targets, shortcuts).items():
+            lin = min(lc.consistency_drift * d, lc.max_constraint_distance)
+            ang = min(math.radians(lc.consistency_drift_deg) * d, math.pi)
+            if lin > lc.linear_search_window or ang > math.radians(lc.angular_search_window_deg):
+                windows[k] = (lin, ang)  # beyond the regular search's reach
+        if not windows:
+            return
         content = submap_content(submap.grid)
         if len(content) < 3:
             return
@@ -254,11 +261,7 @@ class GlobalSlam:
         t_s = self._transform(s)
         centre_g = compose(t_s, centre)
         cands = []
-        for k, d in dist.items():
-            lin = min(lc.consistency_drift * d, lc.max_constraint_distance)
-            ang = min(math.radians(lc.consistency_drift_deg) * d, math.pi)
-            if lin <= lc.linear_search_window and ang <= math.radians(lc.angular_search_window_deg):
-                continue  # within the regular search's reach
+        for k, (lin, ang) in windows.items():
             m = self.matchers[k]
             c_k = compose(self._transform(k), np.r_[m.center_local, 0.0])
             dc = float(np.hypot(*(c_k[:2] - centre_g[:2])))
