@@ -4,11 +4,11 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from slam2d.backend.consistency import ConsistencyParams, inconsistent, pair_matrix
+from slam2d.backend.consistency import ConsistencyParams, candidate_pairs, inconsistent, pair_tests
 from slam2d.backend.loop_closure import LoopMatch, SubmapMatcher
 from slam2d.config import SlamConfig
 from slam2d.eval.loops import agrees
-from slam2d.geometry import between, compose
+from slam2d.geometry import between, compose, inverse
 from slam2d.grid.probability_grid import ProbabilityGrid
 from slam2d.io.mcap import McapLog
 from slam2d.io.simulator import floor_plan, raycast
@@ -90,11 +90,52 @@ def test_pair_consistency_flags_the_contradicting_loop():
     anchors, nodes = [0, 1, 2, 3], [30, 31, 32, 33]
     rel = np.array([between(truth[a], truth[j] + [0, 0, 0]) for a, j in zip(anchors, nodes)])
     rel[1] = compose(rel[1], [1.0, 0.0, 0.05])
-    m = pair_matrix(rel, local[anchors], local[nodes], path[anchors], path[nodes], ConsistencyParams())
+    t = pair_tests(rel, local[anchors], local[nodes], path[anchors], path[nodes], ConsistencyParams())
+    m = t.dense()
     assert m[0, 2] == 1 and m[0, 3] == 1 and m[0, 1] == -1 and m[1, 2] == -1
-    assert [i for i, _ in inconsistent(m, np.array([0.7, 0.9, 0.6, 0.6]))] == [1]
+    assert [i for i, _ in inconsistent(t, np.array([0.7, 0.9, 0.6, 0.6]))] == [1]
     # two loops that contradict each other and nothing else: undecided here (the residual check judges)
-    assert inconsistent(m[:2, :2], np.array([0.7, 0.9])) == []
+    two = pair_tests(rel[:2], local[anchors[:2]], local[nodes[:2]], path[anchors[:2]], path[nodes[:2]], ConsistencyParams())
+    assert two.dense()[0, 1] == -1 and inconsistent(two, np.array([0.7, 0.9])) == []
+
+
+def _all_pairs_reference(rel, la, lj, pa, pj, p):
+    """Every pair (i < k) enumerated and tested one by one: what ``pair_tests`` must equal."""
+    n = len(rel)
+    out = np.zeros((n, n), dtype=np.int8)
+    for i in range(n):
+        for k in range(i + 1, n):
+            chain = abs(pa[i] - pa[k]) + abs(pj[i] - pj[k])
+            if chain > p.max_chain:
+                continue
+            e = compose(compose(compose(rel[i], between(lj[i], lj[k])), inverse(rel[k])), between(la[k], la[i]))
+            ok = math.hypot(e[0], e[1]) <= p.tol_t + p.drift_t * chain and abs(e[2]) <= p.tol_r + p.drift_r * chain
+            out[i, k] = out[k, i] = 1 if ok else -1
+    return out
+
+
+def test_pair_tests_equal_testing_every_pair():
+    """Pairs found by sorting along the path are exactly the pairs an all-pairs loop tests, with the
+    same verdicts, including pairs exactly at the chain limit and loops in any order."""
+    rng = np.random.default_rng(3)
+    p = ConsistencyParams()
+    for trial in range(30):
+        n = int(rng.integers(0, 60))
+        pa = rng.uniform(0, 200, n)
+        pj = pa + rng.uniform(0, 300, n)
+        if n > 3:  # ties and pairs exactly at max_chain
+            pa[1] = pa[0]
+            pa[2], pj[2] = pa[0] + p.max_chain, pj[0]
+        la = np.c_[rng.uniform(-20, 20, (n, 2)), rng.uniform(-3, 3, n)]
+        lj = np.c_[rng.uniform(-20, 20, (n, 2)), rng.uniform(-3, 3, n)]
+        truth = np.array([between(a, b) for a, b in zip(la, lj)]).reshape(-1, 3)
+        rel = truth + rng.normal(0, [0.3, 0.3, 0.03], (n, 3)) * (rng.uniform(size=(n, 1)) < 0.5)
+        ref = _all_pairs_reference(rel, la, lj, pa, pj, p)
+        t = pair_tests(rel, la, lj, pa, pj, p)
+        assert np.array_equal(t.dense(), ref), trial
+        assert len(t.src) == 2 * np.count_nonzero(np.triu(ref))  # each tested pair once each way, nothing else
+        i, k = candidate_pairs(pa, p.max_chain)
+        assert np.all(i < k) and len(set(zip(i.tolist(), k.tolist()))) == len(i)
 
 
 def test_consistency_check_rejects_an_injected_false_loop_on_the_simulator():

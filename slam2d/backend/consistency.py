@@ -33,53 +33,85 @@ class ConsistencyParams:
     min_support: int = 0
 
 
-def pair_matrix(rel: np.ndarray, la: np.ndarray, lj: np.ndarray, pa: np.ndarray, pj: np.ndarray,
-                p: ConsistencyParams) -> np.ndarray:
-    """(L, L) int8: +1 tested and consistent, -1 tested and inconsistent, 0 untested (incl. diagonal).
+@dataclass
+class PairTests:
+    """The tested pairs of ``n`` loops, both ways round: loop ``src[e]`` with loop ``dst[e]``,
+    ``consistent[e]`` whether their cycle closed. Untested pairs are absent: a loop is tested only
+    against loops within ``max_chain`` of it, so memory and time follow the loops' neighbourhoods,
+    not the square of their number."""
+
+    n: int
+    src: np.ndarray
+    dst: np.ndarray
+    consistent: np.ndarray
+
+    def dense(self) -> np.ndarray:
+        """(n, n) int8: +1 tested and consistent, -1 tested and inconsistent, 0 untested (incl. diagonal)."""
+        out = np.zeros((self.n, self.n), dtype=np.int8)
+        out[self.src, self.dst] = np.where(self.consistent, 1, -1)
+        return out
+
+
+def candidate_pairs(pa: np.ndarray, max_chain: float) -> tuple[np.ndarray, np.ndarray]:
+    """Every pair (i < k) of loops whose anchors lie within ``max_chain`` of each other along the
+    local path (``pa``), found by sorting instead of enumerating all pairs. The chain of a pair is at
+    least that distance, so no pair the test can reach is missed."""
+    n = len(pa)
+    order = np.argsort(pa, kind="stable")
+    s = pa[order]
+    hi = np.searchsorted(s, s + max_chain * (1.0 + 1e-9) + 1e-9, side="right")
+    count = np.maximum(hi - np.arange(n) - 1, 0)
+    a = np.repeat(np.arange(n), count)
+    b = a + 1 + (np.arange(len(a)) - np.repeat(np.cumsum(count) - count, count))
+    i, k = order[a], order[b]
+    return np.minimum(i, k), np.maximum(i, k)
+
+
+def pair_tests(rel: np.ndarray, la: np.ndarray, lj: np.ndarray, pa: np.ndarray, pj: np.ndarray,
+               p: ConsistencyParams) -> PairTests:
+    """Test every pair of loops whose two local legs are short enough (module docstring).
 
     ``rel`` (L, 3) loop relative poses (node in anchor frame); ``la``/``lj`` (L, 3) local SLAM poses of
     the anchors / nodes; ``pa``/``pj`` (L,) their path length along the local trajectory [m]."""
     n = len(rel)
-    out = np.zeros((n, n), dtype=np.int8)
+    none = np.zeros(0, dtype=np.int64)
     if n < 2:
-        return out
-    i, k = np.triu_indices(n, 1)
+        return PairTests(n, none, none, np.zeros(0, bool))
+    i, k = candidate_pairs(pa, p.max_chain)
     chain = np.abs(pa[i] - pa[k]) + np.abs(pj[i] - pj[k])
     tested = chain <= p.max_chain
     i, k, chain = i[tested], k[tested], chain[tested]
-    if len(i) == 0:
-        return out
     e = compose(compose(compose(rel[i], between(lj[i], lj[k])), inverse(rel[k])), between(la[k], la[i]))
     ok = (np.hypot(e[:, 0], e[:, 1]) <= p.tol_t + p.drift_t * chain) & (np.abs(e[:, 2]) <= p.tol_r + p.drift_r * chain)
-    v = np.where(ok, 1, -1).astype(np.int8)
-    out[i, k] = v
-    out[k, i] = v
-    return out
+    return PairTests(n, np.concatenate([i, k]), np.concatenate([k, i]), np.concatenate([ok, ok]))
 
 
-def inconsistent(m: np.ndarray, scores: np.ndarray, min_support: int = 0) -> list[tuple[int, str]]:
+def inconsistent(t: PairTests, scores: np.ndarray, min_support: int = 0) -> list[tuple[int, str]]:
     """Indices to remove, each with its reason (module docstring)."""
-    alive = np.ones(len(m), bool)
+    n = t.n
+    alive = np.ones(n, bool)
     removed = []
-    while True:
-        sub = m * alive[None, :]
-        pos = (sub == 1).sum(axis=1)
-        neg = (sub == -1).sum(axis=1)
+
+    def support():
+        live = alive[t.dst]
+        pos = np.bincount(t.src[live & t.consistent], minlength=n)
+        neg = np.bincount(t.src[live & ~t.consistent], minlength=n)
+        return pos, neg
+
+    while n:
+        pos, neg = support()
         excess = np.where(alive & (neg >= 2), neg - pos, -10 ** 9)
-        if len(excess) == 0:
-            break
         worst = int(np.lexsort((scores, -excess))[0])  # most contradicted, then the lowest score
         if excess[worst] > 0:
             alive[worst] = False
             removed.append((worst, f"inconsistent with {neg[worst]} of {neg[worst] + pos[worst]} loops through the local chain"))
             continue
         break
-    if min_support > 0:
-        sub = m * alive[None, :]
-        pos = (sub == 1).sum(axis=1)
+    if min_support > 0 and n:
+        pos, _ = support()
         for i in np.flatnonzero(alive & (pos < min_support)):
             removed.append((int(i), f"unconfirmed: {pos[i]} consistent loops through the local chain < {min_support}"))
     return removed
 
 
-__all__ = ["ConsistencyParams", "pair_matrix", "inconsistent"]
+__all__ = ["ConsistencyParams", "PairTests", "candidate_pairs", "pair_tests", "inconsistent"]

@@ -18,7 +18,7 @@ import time
 
 import numpy as np
 
-from slam2d.backend.consistency import ConsistencyParams, inconsistent, pair_matrix
+from slam2d.backend.consistency import ConsistencyParams, inconsistent, pair_tests
 from slam2d.backend.loop_closure import StackCache, SubmapMatcher, loop_points
 from slam2d.backend.pose_graph import PoseGraph
 from slam2d.backend.wide_search import chain_distances, coarse_grid, coarse_match, frame_offset, submap_content
@@ -27,8 +27,10 @@ from slam2d.matching.real_time import unmatched_covariance
 
 log = logging.getLogger(__name__)
 
-#: bytes of branch-and-bound precomputation stacks kept, most recently searched first (``StackCache``)
-STACK_CACHE_BYTES = 256 * 1024 * 1024
+#: bytes of branch-and-bound precomputation stacks kept, most recently searched first (``StackCache``).
+#: A stack is rebuilt from its submap's uint8 grid in far less time than one search takes, so the
+#: budget only needs to hold the submaps searched around the robot at a time.
+STACK_CACHE_BYTES = 32 * 1024 * 1024
 
 
 class GlobalSlam:
@@ -361,7 +363,7 @@ class GlobalSlam:
         pa = np.array([self.nodes[f.anchor]["path"] for f in loops])
         pj = np.array([self.nodes[f.node]["path"] for f in loops])
         scores = np.array([f.record.get("score") or 0.0 for f in loops])
-        for i, reason in inconsistent(pair_matrix(rel, la, lj, pa, pj, p), scores, p.min_support):
+        for i, reason in inconsistent(pair_tests(rel, la, lj, pa, pj, p), scores, p.min_support):
             self.graph.remove_loop(loops[i], reason)
             self.consistency_removed += 1
 
