@@ -102,6 +102,8 @@ class LoopClosureConfig(_Section):
     angular_search_window_deg: float = Field(15.0, gt=0.0, le=180.0, description="Half-width of the rotation window [deg].")
     branch_depth: int = Field(6, ge=1, le=8, description="Precomputation grids of widths 1 … 2^depth cells.")
     voxel_filter_size: float = Field(0.05, ge=0.0, description="Scan points are thinned to one per cell of this size for loop-closure matching [m].")
+    adaptive_voxel_min_points: int = Field(100, ge=0, description="Then the coarsest voxel filter (up to adaptive_voxel_max_length) that keeps this many points thins them further (Cartographer's loop-closure adaptive voxel filter; 0 disables): a search costs time in proportion to the points.")
+    adaptive_voxel_max_length: float = Field(0.9, gt=0.0, description="Largest cell of the adaptive voxel filter for loop-closure points [m].")
     sample_every_n_nodes: int = Field(5, ge=1, description="Every n-th node is matched against nearby finished submaps (or sooner, once the robot travelled n × motion_filter.max_distance since the last sampled node, so sparse logs are sampled as densely per metre as dense ones).")
     max_submaps_per_node: int = Field(3, ge=1, description="A sampled node is matched against at most this many nearest finished submaps.")
     max_searches_per_submap: int = Field(8, ge=0, description="A newly finished submap is matched against at most this many earlier nearby nodes.")

@@ -47,3 +47,31 @@ def voxel_filter(points: np.ndarray, size: float) -> np.ndarray:
     if size <= 0 or len(points) == 0:
         return points
     return points[_kernels.voxel_filter_indices(points, float(size))]
+
+
+def adaptive_voxel_filter(points: np.ndarray, min_points: int, max_length: float) -> np.ndarray:
+    """Cartographer's adaptive voxel filter: the coarsest voxel filter, up to ``max_length``, that still
+    keeps ``min_points`` points (bisection on the cell size); a cloud of at most ``min_points`` points
+    is returned as it is. Matching cost grows with the points, while a few hundred spread over the
+    scan determine a pose as well as thousands."""
+    if min_points <= 0 or len(points) <= min_points:
+        return points
+    coarsest = voxel_filter(points, max_length)
+    if len(coarsest) >= min_points:
+        return coarsest
+    high = max_length
+    result = coarsest
+    while high > 0.01 * max_length:  # halve the cell until enough points remain, then bisect
+        low = 0.5 * high
+        result = voxel_filter(points, low)
+        if len(result) >= min_points:
+            while high / low > 1.1:
+                mid = 0.5 * (low + high)
+                cand = voxel_filter(points, mid)
+                if len(cand) >= min_points:
+                    low, result = mid, cand
+                else:
+                    high = mid
+            return result
+        high = low
+    return result

@@ -30,10 +30,12 @@ def test_api_loop_gives_exactly_what_slam2d_run_writes(tmp_path):
     assert result.poses.shape == (len(estimates), 3)
     assert [e.index for e in estimates] == list(range(len(estimates)))
     # the estimate while running is the local pose moved by the latest correction; loops closed on the
-    # way, so by the end the global estimate is no longer the local pose, and it is near the final one
+    # way, so after them the global estimate is no longer the local pose (by how much depends on the
+    # drift they correct; on the simulator about a centimetre at most), and at the end it is near the final one
     assert result.summary["loop_closure"]["optimizations"] >= 1
+    moved = [np.abs(e.global_pose[:2] - e.local_pose[:2]).max() for e in estimates]
+    assert moved[0] == 0.0 and max(moved) > 5e-3
     last = estimates[-1]
-    assert np.abs(last.global_pose[:2] - last.local_pose[:2]).max() > 1e-3
     assert math.hypot(*(last.global_pose[:2] - result.poses[-1][:2])) < 0.2
 
 

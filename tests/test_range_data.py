@@ -4,7 +4,7 @@ import pytest
 
 from slam2d.config import RangeFilterConfig
 from slam2d.geometry import transform_points
-from slam2d.range_data import range_data, voxel_filter
+from slam2d.range_data import adaptive_voxel_filter, range_data, voxel_filter
 from slam2d.types import Scan
 
 
@@ -99,3 +99,21 @@ def test_finite_max_count_matches_oracle():
     rng = np.random.default_rng(0)
     v = rng.integers(0, 20, 500).astype(float)
     assert finite_max_count(v) == (v.max(), int((v == v.max()).sum()))
+
+
+def test_adaptive_voxel_filter_keeps_about_the_minimum():
+    """Cartographer's adaptive voxel filter: a small cloud is kept whole; a cloud that the coarsest
+    cell still leaves large enough gets that cell; otherwise the cell is bisected until just enough
+    points remain (a straight wall: points ≈ length / cell, so within the 10 % bisection step)."""
+    rng = np.random.default_rng(5)
+    few = rng.uniform(-5, 5, (80, 2))
+    assert adaptive_voxel_filter(few, 100, 0.9) is few
+    spread = rng.uniform(-100, 100, (400, 2))  # 0.9 m cells keep almost all of them
+    np.testing.assert_array_equal(adaptive_voxel_filter(spread, 100, 0.9), voxel_filter(spread, 0.9))
+    wall = np.c_[np.linspace(0.013, 19.987, 2000), np.full(2000, 3.01)]  # 20 m of wall, 1 cm apart
+    out = adaptive_voxel_filter(wall, 100, 0.9)
+    assert 100 <= len(out) <= 125, len(out)
+    assert len(voxel_filter(wall, 0.9)) < 100  # the coarsest cell alone would keep too few
+    rows = {tuple(p) for p in wall.tolist()}
+    assert all(tuple(p) in rows for p in out.tolist())  # a subset of the input, not new points
+    assert adaptive_voxel_filter(wall, 0, 0.9) is wall  # 0 disables it

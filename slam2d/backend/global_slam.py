@@ -87,7 +87,8 @@ class GlobalSlam:
         path = 0.0 if prev is None else prev["path"] + float(np.hypot(*(local_pose[:2] - prev["local"][:2])))
         self.nodes[j] = {"local": local_pose, "time": scan.timestamp, "path": path,
                          "stamp": scan.timestamp_text or f"{scan.timestamp:.9f}",
-                         "points": loop_points(hits, self.lc.voxel_filter_size)}
+                         "points": loop_points(hits, self.lc.voxel_filter_size, self.lc.adaptive_voxel_min_points,
+                                                     self.lc.adaptive_voxel_max_length)}
         self.node_order.append(j)
         self.graph.add_node(j, compose(self.correction, local_pose))
         if covariance is None:  # never matched: pure prediction, trusted least

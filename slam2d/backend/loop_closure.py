@@ -37,7 +37,7 @@ from slam2d.grid.probability_grid import dequantize, quantize
 from slam2d.matching.real_time import _covariance, unmatched_covariance
 from slam2d.matching.refine import refine
 from slam2d.matching.search import MatchGrid, PrecomputationStack, SearchParameters, branch_and_bound, exhaustive
-from slam2d.range_data import voxel_filter
+from slam2d.range_data import adaptive_voxel_filter, voxel_filter
 
 
 @dataclass
@@ -192,8 +192,11 @@ def separated_margin(scores: np.ndarray, lin: int, ang: int) -> float:
     return best - float(scores[peaks].max())
 
 
-def loop_points(hits: np.ndarray, voxel: float) -> np.ndarray:
-    return voxel_filter(np.asarray(hits, dtype=float), voxel)
+def loop_points(hits: np.ndarray, voxel: float, min_points: int = 0, max_length: float = 0.0) -> np.ndarray:
+    """A node's points for loop-closure matching: voxel-filtered at ``voxel``, then thinned by the
+    adaptive voxel filter to about ``min_points`` (0: not)."""
+    pts = voxel_filter(np.asarray(hits, dtype=float), voxel)
+    return adaptive_voxel_filter(pts, min_points, max_length) if min_points > 0 else pts
 
 
 __all__ = ["SubmapMatcher", "LoopMatch", "loop_points", "separated_margin"]
