@@ -242,3 +242,28 @@ def test_map_export_in_bands_equals_one_pass(monkeypatch):
     np.testing.assert_array_equal(banded[0], whole[0])
     assert banded[1:] == whole[1:]
     assert (whole[0] == me.FREE).any() and (whole[0] == me.OCCUPIED).any()
+
+
+def test_frozen_grid_keeps_known_mask_and_observed_cells_exactly():
+    """A finished submap keeps its known mask as bits: the mask, ``observed_at`` (cells inside,
+    outside and on every bit position of a byte) and the probabilities read back as before freezing."""
+    rng = np.random.default_rng(11)
+    g = ProbabilityGrid(0.05)
+    for _ in range(30):
+        o = rng.uniform(-1, 1, 2)
+        g.insert(o, o + rng.uniform(-3, 3, (40, 2)))
+    r0, r1, c0, c1 = g.known_bounds()
+    if (c1 - c0) % 8 == 0:  # a width that leaves the last byte of each row part padding
+        c1 -= 1
+    known = g.known[r0:r1, c0:c1].copy()
+    prob = g.probability(unknown_value=0.5)[r0:r1, c0:c1].copy()
+    cells = np.c_[rng.integers(-5, c1 - c0 + 5, 3000), rng.integers(-5, r1 - r0 + 5, 3000)]
+    want = np.zeros(len(cells), bool)
+    inside = (cells[:, 0] >= 0) & (cells[:, 1] >= 0) & (cells[:, 0] < c1 - c0) & (cells[:, 1] < r1 - r0)
+    want[inside] = known[cells[inside, 1], cells[inside, 0]] > 0
+    g.freeze(r0, r1, c0, c1)
+    np.testing.assert_array_equal(g.known, known)
+    np.testing.assert_array_equal(g.observed_at(cells), want)
+    assert want.any() and (~want).any()
+    np.testing.assert_allclose(g.probability(unknown_value=0.5), prob, atol=0.5 / 255)
+    assert g._known_bits.nbytes <= known.size // 8 + known.shape[0]  # a bit a cell (plus a row's last byte)

@@ -47,7 +47,7 @@ class ProbabilityGrid:
         self.logodds = np.zeros(shape, dtype=np.float32)
         self.prob = np.full(shape, self.unknown_probability, dtype=np.float32)
         self.stamp = np.zeros(shape, dtype=np.int32)
-        self._known = None  # frozen grids keep a known mask instead of stamps
+        self._known_bits = None  # frozen grids keep a known mask instead of stamps, 1 bit a cell (np.packbits by row)
         self.scan_id = 0
         # likelihood field: Gaussian of the distance to the nearest occupied cell, cut at 3 sigma
         self.field_sigma = field_sigma
@@ -75,9 +75,13 @@ class ProbabilityGrid:
     @property
     def known(self) -> np.ndarray:
         """1 where some scan updated the cell (observed), else 0."""
-        if self._known is not None:
-            return self._known
+        if self._known_bits is not None:
+            return self._known_rows(0, self.shape[0])
         return (self.stamp > 0).view(np.uint8)
+
+    def _known_rows(self, r0: int, r1: int) -> np.ndarray:
+        """``known[r0:r1]`` of a frozen grid, unpacked from its bit mask."""
+        return np.unpackbits(self._known_bits[r0:r1], axis=1, count=self.shape[1])
 
     def observed_at(self, cells: np.ndarray) -> np.ndarray:
         """For cells (N, 2) as [col, row]: True where the cell lies in the grid and was observed."""
@@ -85,8 +89,9 @@ class ProbabilityGrid:
         c, r = cells[:, 0], cells[:, 1]
         inside = (c >= 0) & (r >= 0) & (c < cols) & (r < rows)
         out = np.zeros(len(cells), dtype=bool)
-        if self._known is not None:
-            out[inside] = self._known[r[inside], c[inside]] > 0
+        if self._known_bits is not None:
+            ri, ci = r[inside], c[inside]
+            out[inside] = ((self._known_bits[ri, ci >> 3] >> (7 - (ci & 7))) & 1) > 0
         else:
             out[inside] = self.stamp[r[inside], c[inside]] > 0
         return out
@@ -95,14 +100,14 @@ class ProbabilityGrid:
         """Crop to [r0:r1, c0:c1] and drop the insertion buffers (no more inserts)."""
         known = np.ascontiguousarray(self.known[r0:r1, c0:c1])
         # matching and export read probabilities only: the log-odds go, and the probabilities are kept
-        # as uint8 (p × 255, what branch-and-bound scores anyway): 2 bytes a cell with the known mask
+        # as uint8 (p × 255, what branch-and-bound scores anyway) beside a 1-bit known mask
         self.logodds = np.zeros((0, 0), dtype=np.float32)
         self.prob = quantize(self.prob[r0:r1, c0:c1])
         # a frozen grid is read, never matched by local SLAM again: its likelihood field goes
         self.field_sigma = None
         self.field = np.zeros((0, 0), dtype=np.float32)
         self.origin = self.origin + np.array([c0, r0]) * self.resolution
-        self._known = known
+        self._known_bits = np.packbits(known, axis=1)
         self.stamp = np.zeros((0, 0), dtype=np.int32)
 
     def release(self):
@@ -110,7 +115,7 @@ class ProbabilityGrid:
         empty = np.zeros((0, 0), dtype=np.float32)
         self.logodds, self.prob, self.field = empty, empty.copy(), empty.copy()
         self.stamp = np.zeros((0, 0), dtype=np.int32)
-        self._known = np.zeros((0, 0), dtype=np.uint8)
+        self._known_bits = np.zeros((0, 0), dtype=np.uint8)
         self.field_sigma = None
 
     def ensure_contains(self, xmin, ymin, xmax, ymax):
@@ -175,7 +180,7 @@ class ProbabilityGrid:
     def build_finished(self, scans: list, threads: int | None = None, band_cells: int = 1 << 22):
         """Insert many scans, in order, into this empty grid and finish it: what is kept is the
         probability of every cell (float32, unknown cells at ``unknown_probability``, exactly what
-        ``insert_scans`` leaves in ``prob``) and the known mask, 5 bytes a cell, and no more scans
+        ``insert_scans`` leaves in ``prob``) and the known mask (1 bit a cell), and no more scans
         can be inserted. The log-odds and stamps exist for one band of rows (about ``band_cells``
         cells) at a time, and only the scans whose rays reach a band are traced for it; every cell
         sees the same updates in the same order as with ``insert_scans``, so the result is identical."""
@@ -212,7 +217,7 @@ class ProbabilityGrid:
                                           np.ascontiguousarray(e[ray]), starts, batch.n_hits[sel], self.hit_delta,
                                           self.miss_delta, self.lo_min, self.lo_max, n, a)
             known[a:b] = stamp > 0
-        self.prob, self._known = prob, known
+        self.prob, self._known_bits = prob, np.packbits(known, axis=1)
         self.logodds = np.zeros((0, 0), dtype=np.float32)
         self.stamp = np.zeros((0, 0), dtype=np.int32)
         self.scan_id = batch.count
@@ -251,9 +256,9 @@ class ProbabilityGrid:
 
     def probability_rows(self, r0: int, r1: int, unknown_value: float = 0.5) -> np.ndarray:
         """``probability()[r0:r1]`` without converting the whole grid (a large map is exported in bands)."""
-        if self._known is not None:  # frozen: ``prob`` holds every known cell's probability (× 255 when uint8)
+        if self._known_bits is not None:  # frozen: ``prob`` holds every known cell's probability (× 255 when uint8)
             p = self.prob[r0:r1]
-            return np.where(self._known[r0:r1] > 0, dequantize(p) if p.dtype == np.uint8 else p,
+            return np.where(self._known_rows(r0, r1) > 0, dequantize(p) if p.dtype == np.uint8 else p,
                             np.float32(unknown_value)).astype(np.float32)
         out = np.empty(self.logodds[r0:r1].shape, dtype=np.float32)
         if out.size:
