@@ -48,14 +48,14 @@ def _world(nodes, poses):
     """Per node: sensor origin (2,), hits (N, 2) and every ray end (hits then misses), in the map frame."""
     from slam2d.geometry import transform_points
 
-    out = []
-    for n in nodes:
-        q = poses[n.scan_index]
-        o = transform_points(q, np.asarray(n.origin, dtype=np.float64).reshape(1, 2))[0]
-        h = transform_points(q, np.asarray(n.hits, dtype=np.float64).reshape(-1, 2))
-        m = transform_points(q, np.asarray(n.misses, dtype=np.float64).reshape(-1, 2))
-        out.append((o, h, np.concatenate([h, m])))
-    return out
+    return [_node_world(n, poses[n.scan_index], transform_points) for n in nodes]
+
+
+def _node_world(n, q, transform_points):
+    o = transform_points(q, np.asarray(n.origin, dtype=np.float64).reshape(1, 2))[0]
+    h = transform_points(q, np.asarray(n.hits, dtype=np.float64).reshape(-1, 2))
+    m = transform_points(q, np.asarray(n.misses, dtype=np.float64).reshape(-1, 2))
+    return o, h, np.concatenate([h, m])
 
 
 def _beams(o, ends):
@@ -107,10 +107,18 @@ def free_space_checks(nodes, poses, resolution: float) -> tuple[np.ndarray, np.n
     revisit = np.full(len(nodes), np.nan)
     if len(nodes) < 2:
         return out, revisit
-    world = _world(nodes, poses)
-    origins = np.array([w[0] for w in world])
+    from slam2d.geometry import transform_points
+
+    # node by node, keeping each one's hits and beams but not its ray ends (a dense log's nodes
+    # hold millions of them)
+    origins, hits, beams = [], [], []
+    for n in nodes:
+        o, h, ends = _node_world(n, poses[n.scan_index], transform_points)
+        origins.append(o)
+        hits.append(h)
+        beams.append(_beams(o, ends))
+    origins = np.array(origins)
     path = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(origins, axis=0).T))])
-    beams = [_beams(o, ends) for o, _, ends in world]
     # the neighbours each node is compared with: the nearest of the same pass, then of other passes
     tree = cKDTree(origins)
     picks = []
@@ -133,12 +141,14 @@ def free_space_checks(nodes, poses, resolution: float) -> tuple[np.ndarray, np.n
     pairs = np.ascontiguousarray(pairs[:, :2])
     # both directions of every pair in one kernel call
     both = np.concatenate([pairs, pairs[:, ::-1]])
-    hit_start = np.concatenate([[0], np.cumsum([len(w[1]) for w in world])]).astype(np.int64)
+    hit_start = np.concatenate([[0], np.cumsum([len(h) for h in hits])]).astype(np.int64)
     beam_start = np.concatenate([[0], np.cumsum([len(b[0]) for b in beams])]).astype(np.int64)
-    counts = _kernels.free_space_counts(
-        np.concatenate([w[1] for w in world]).reshape(-1, 2), hit_start, origins,
-        np.concatenate([b[0] for b in beams]), np.concatenate([b[1] for b in beams]), beam_start,
-        np.array([b[2] for b in beams]), both, float(resolution), VIOLATION_RANGE_SHARE)
+    hits = np.concatenate(hits).reshape(-1, 2)  # flat arrays for the kernel; the per-node lists go
+    bearings, ranges = np.concatenate([b[0] for b in beams]), np.concatenate([b[1] for b in beams])
+    steps = np.array([b[2] for b in beams])
+    del beams
+    counts = _kernels.free_space_counts(hits, hit_start, origins, bearings, ranges, beam_start, steps, both,
+                                        float(resolution), VIOLATION_RANGE_SHARE)
     ij, ji = counts[:len(pairs)], counts[len(pairs):]
     ok = (ij[:, 1] > 0) & (ji[:, 1] > 0)
     s_ij, s_ji = ij[:, 0] / np.maximum(ij[:, 1], 1), ji[:, 0] / np.maximum(ji[:, 1], 1)
