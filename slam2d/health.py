@@ -27,6 +27,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from slam2d.geometry import transform_points
+
 #: a node disagrees with its neighbours when, on average over them, more than this share of its
 #: hits lie inside their free space
 MAX_VIOLATION = 0.1
@@ -46,12 +48,11 @@ VIOLATION_RANGE_SHARE = 0.01
 
 def _world(nodes, poses):
     """Per node: sensor origin (2,), hits (N, 2) and every ray end (hits then misses), in the map frame."""
-    from slam2d.geometry import transform_points
-
-    return [_node_world(n, poses[n.scan_index], transform_points) for n in nodes]
+    return [_node_world(n, poses[n.scan_index]) for n in nodes]
 
 
-def _node_world(n, q, transform_points):
+def _node_world(n, q):
+    """One node of ``_world`` at pose ``q``."""
     o = transform_points(q, np.asarray(n.origin, dtype=np.float64).reshape(1, 2))[0]
     h = transform_points(q, np.asarray(n.hits, dtype=np.float64).reshape(-1, 2))
     m = transform_points(q, np.asarray(n.misses, dtype=np.float64).reshape(-1, 2))
@@ -107,13 +108,11 @@ def free_space_checks(nodes, poses, resolution: float) -> tuple[np.ndarray, np.n
     revisit = np.full(len(nodes), np.nan)
     if len(nodes) < 2:
         return out, revisit
-    from slam2d.geometry import transform_points
-
     # node by node, keeping each one's hits and beams but not its ray ends (a dense log's nodes
     # hold millions of them)
     origins, hits, beams = [], [], []
     for n in nodes:
-        o, h, ends = _node_world(n, poses[n.scan_index], transform_points)
+        o, h, ends = _node_world(n, poses[n.scan_index])
         origins.append(o)
         hits.append(h)
         beams.append(_beams(o, ends))

@@ -52,8 +52,8 @@ def voxel_filter(points: np.ndarray, size: float) -> np.ndarray:
 def adaptive_voxel_filter(points: np.ndarray, min_points: int, max_length: float) -> np.ndarray:
     """Cartographer's adaptive voxel filter: the coarsest voxel filter, up to ``max_length``, that still
     keeps ``min_points`` points (bisection on the cell size); a cloud of at most ``min_points`` points
-    is returned as it is. Matching cost grows with the points, while a few hundred spread over the
-    scan determine a pose as well as thousands."""
+    is returned as it is (so is every cloud when ``min_points`` is 0). Matching costs time in
+    proportion to the points."""
     if min_points <= 0 or len(points) <= min_points:
         return points
     coarsest = voxel_filter(points, max_length)

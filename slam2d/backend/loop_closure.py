@@ -195,8 +195,7 @@ def separated_margin(scores: np.ndarray, lin: int, ang: int) -> float:
 def loop_points(hits: np.ndarray, voxel: float, min_points: int = 0, max_length: float = 0.0) -> np.ndarray:
     """A node's points for loop-closure matching: voxel-filtered at ``voxel``, then thinned by the
     adaptive voxel filter to about ``min_points`` (0: not)."""
-    pts = voxel_filter(np.asarray(hits, dtype=float), voxel)
-    return adaptive_voxel_filter(pts, min_points, max_length) if min_points > 0 else pts
+    return adaptive_voxel_filter(voxel_filter(np.asarray(hits, dtype=float), voxel), min_points, max_length)
 
 
 __all__ = ["SubmapMatcher", "LoopMatch", "loop_points", "separated_margin"]
