@@ -165,6 +165,7 @@ class LocalSlam:
         self.num_degenerate = 0
         self.num_weak = 0
         self.untrusted_in_a_row = 0
+        self._doubt = np.zeros(2)  # MatchingResult.doubt, gathered until the next insertion
         self.scores: list[float] = []
         self.recent_scores: deque[float] = deque(maxlen=RECENT_SCORES)
         w = rt.recovery_linear_window
@@ -254,6 +255,7 @@ class LocalSlam:
         kept_match = None
         match = None
         quality = "unmatched"
+        recovered = False
         submap = self.submaps.matching_submap
         if submap is not None and len(points) >= 3:
             grid = submap.match_grid()
@@ -282,6 +284,7 @@ class LocalSlam:
                                                        and self._better_where_observed(submap, grid, wide, m, points))):
                     m = wide
                     self.num_recovered += 1
+                    recovered = True
             t2 = time.perf_counter()
             timings["match"] = (t2 - t1) * 1e3
             if m is not None:
@@ -329,6 +332,7 @@ class LocalSlam:
                 self.num_untrusted += 1
                 self.untrusted_in_a_row += 1
         pose = np.array([pose[0], pose[1], math.remainder(pose[2], 2 * math.pi)])
+        self._doubt += self._step_doubt(quality, recovered, submap is not None)
         self.extrapolator.add(scan.timestamp, pose, scan.odom_pose)
         inserted = quality != "untrusted" and not self.filter.is_similar(scan.timestamp, pose)
         finished = []
@@ -344,10 +348,25 @@ class LocalSlam:
             self.num_inserted += 1
             timings["insert"] = (time.perf_counter() - t3) * 1e3
         timings["total"] = (time.perf_counter() - t0) * 1e3
+        doubt = (0.0, 0.0)
+        if inserted:
+            doubt, self._doubt = (float(self._doubt[0]), float(self._doubt[1])), np.zeros(2)
         return MatchingResult(scan.timestamp, pose, rd, inserted, score, timings,
                               active_submap=self.submaps.matching_submap, finished_submaps=finished,
                               inserted_into=inserted_into, match=kept_match, points=points,
-                              quality=quality)
+                              quality=quality, doubt=doubt)
+
+    def _step_doubt(self, quality, recovered, had_submap) -> np.ndarray:
+        """What a step adds to ``MatchingResult.doubt``: a pose the recovery search chose, or one forced
+        in from the edge, may be anywhere in the recovery window; a scan with too few points to match
+        carries the prediction, off by up to the regular window. An untrusted scan adds nothing: it is
+        not inserted, and the next scan is matched against the same submap."""
+        rt = self.cfg.real_time_matcher
+        if (recovered and quality != "untrusted") or quality == "forced":
+            return np.array([rt.recovery_linear_window, math.radians(rt.recovery_angular_window_deg)])
+        if quality == "unmatched" and had_submap:
+            return np.array([rt.linear_search_window, math.radians(rt.angular_search_window_deg)])
+        return np.zeros(2)
 
     def all_submaps(self):
         return list(self.finished_submaps) + list(self.submaps.submaps)

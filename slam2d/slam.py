@@ -164,7 +164,7 @@ class Slam:
         if gs is not None:
             t1 = time.perf_counter()
             if res.inserted:
-                gs.add_node(scan, res.local_pose, res.range_data.hits, res.covariance, res.inserted_into)
+                gs.add_node(scan, res.local_pose, res.range_data.hits, res.covariance, res.inserted_into, res.doubt)
             for sub in res.finished_submaps:
                 gs.add_finished_submap(sub)
             self._stage("global", (time.perf_counter() - t1) * 1e3)

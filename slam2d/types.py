@@ -91,6 +91,9 @@ class MatchingResult:
     match: object = None                  # the correlative match of an inserted scan
     points: np.ndarray | None = None      # the filtered points that were matched (tracking frame)
     quality: str = "unmatched"            # trusted | weak | forced | untrusted | unmatched
+    #: how far (m, rad) the pose may be off beyond the drift model, from the steps since the last
+    #: inserted scan that local SLAM could not trust: the window each came from (global SLAM's windows)
+    doubt: tuple = (0.0, 0.0)
 
     @property
     def covariance(self) -> np.ndarray | None:

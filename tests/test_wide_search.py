@@ -1,10 +1,9 @@
 """The loop search after a long stretch without loop closure (slam2d/backend/wide_search.py)."""
-import itertools
 import math
 
 import numpy as np
 
-from slam2d.backend.wide_search import (COARSE_FACTOR, NEUTRAL, chain_distances, coarse_grid, coarse_match,
+from slam2d.backend.wide_search import (COARSE_FACTOR, NEUTRAL, coarse_grid, coarse_match,
                                         frame_offset, submap_content)
 from slam2d.geometry import between, compose, inverse
 from slam2d.grid.probability_grid import ProbabilityGrid
@@ -23,38 +22,6 @@ def _grid(segs, poses, max_range=12.0):
         g.insert(p[:2], compose(p, np.c_[pts, np.zeros(len(pts))])[:, :2])
     g.freeze(*g.known_bounds())
     return g
-
-
-def _brute_chain(source, targets, shortcuts):
-    """Shortest walk along the line where shortcuts are free: every order of using them, brute force."""
-    out = {}
-    for k, t in targets.items():
-        best = abs(t - source)
-        ends = [(a, b) for a, b in shortcuts] + [(b, a) for a, b in shortcuts]
-        for n in range(1, 4):
-            for seq in itertools.permutations(ends, n):
-                d, at = 0.0, source
-                for a, b in seq:
-                    d += abs(a - at)
-                    at = b
-                best = min(best, d + abs(t - at))
-        out[k] = best
-    return out
-
-
-def test_chain_distance_is_the_shortest_walk_with_loops_as_shortcuts():
-    rng = np.random.default_rng(3)
-    for _ in range(40):
-        shortcuts = [tuple(rng.uniform(0, 100, 2).round(1)) for _ in range(int(rng.integers(0, 4)))]
-        targets = {i: float(v) for i, v in enumerate(rng.uniform(0, 100, 5).round(1))}
-        source = round(float(rng.uniform(0, 100)), 1)
-        got = chain_distances(source, targets, shortcuts)
-        want = _brute_chain(source, targets, shortcuts)
-        for k in targets:
-            assert math.isclose(got[k], want[k], abs_tol=1e-9), (source, targets, shortcuts)
-    # no loops: the path between them; a loop from the far end back to the start: almost nothing
-    assert chain_distances(500.0, {0: 10.0}, []) == {0: 490.0}
-    assert chain_distances(500.0, {0: 10.0}, [(495.0, 12.0)]) == {0: 7.0}
 
 
 def test_coarse_grid_is_the_block_maximum_with_unobserved_cells_neutral():

@@ -7,8 +7,11 @@ each newly finished submap against earlier nearby nodes; matches that pass verif
 covariance. Before each optimization, loops that contradict other loops through the local
 chain are removed (``consistency.py``); after it, loops with large residuals. The graph is
 optimized every ``optimize_every_n_nodes`` nodes and once at the end; submaps and nodes then
-move to their global poses. Where the drift since two places were last tied exceeds the regular
-window, a finished submap is also matched whole against older ones (``wide_search.py``). Every rejection's reason is kept in its constraints.jsonl record.
+move to their global poses. Each search looks as far around the current estimate as the drift
+bound between the two places reaches (``drift.py``: local SLAM's drift along what links them in
+the optimized graph, plus every step local SLAM could not trust), at most the regular window;
+where the bound exceeds it, a finished submap is also matched whole against older ones
+(``wide_search.py``). Every rejection's reason is kept in its constraints.jsonl record.
 """
 from __future__ import annotations
 
@@ -18,10 +21,11 @@ import time
 
 import numpy as np
 
+from slam2d.backend.drift import DriftBound
 from slam2d.backend.consistency import ConsistencyParams, inconsistent, pair_tests
 from slam2d.backend.loop_closure import StackCache, SubmapMatcher, loop_points
 from slam2d.backend.pose_graph import PoseGraph
-from slam2d.backend.wide_search import chain_distances, coarse_grid, coarse_match, frame_offset, submap_content
+from slam2d.backend.wide_search import coarse_grid, coarse_match, frame_offset, submap_content
 from slam2d.geometry import between, compose, inverse
 from slam2d.matching.real_time import unmatched_covariance
 
@@ -66,6 +70,7 @@ class GlobalSlam:
         self.loops_at_last_optimize = 0
         self.consistency_removed = 0
         self.gnc_removed = 0
+        self.drift = DriftBound(lc.consistency_drift, math.radians(lc.consistency_drift_deg))
         rt = cfg.real_time_matcher
         self.unmatched_cov = unmatched_covariance(rt.linear_search_window, math.radians(rt.angular_search_window_deg))
 
@@ -80,11 +85,14 @@ class GlobalSlam:
         return self.global_node(self.submap_anchor[k])
 
     # ---- input from local SLAM
-    def add_node(self, scan, local_pose, hits, covariance, inserted_into):
+    def add_node(self, scan, local_pose, hits, covariance, inserted_into, doubt=(0.0, 0.0)):
+        """``doubt``: what local SLAM could not vouch for since the last node (``MatchingResult.doubt``)."""
         j = scan.index
         local_pose = np.asarray(local_pose, float)
         prev = self.nodes[self.node_order[-1]] if self.node_order else None
-        path = 0.0 if prev is None else prev["path"] + float(np.hypot(*(local_pose[:2] - prev["local"][:2])))
+        step = 0.0 if prev is None else float(np.hypot(*(local_pose[:2] - prev["local"][:2])))
+        path = 0.0 if prev is None else prev["path"] + step
+        self.drift.add(j, step, *doubt)
         self.nodes[j] = {"local": local_pose, "time": scan.timestamp, "path": path,
                          "stamp": scan.timestamp_text or f"{scan.timestamp:.9f}",
                          "points": loop_points(hits, self.lc.voxel_filter_size, self.lc.adaptive_voxel_min_points,
@@ -174,9 +182,9 @@ class GlobalSlam:
         for _, k in sorted(cands)[: self.lc.max_submaps_per_node]:
             self._search(k, j)
 
-    def _search(self, k, j, initial=None, defer: bool = False):
+    def _search(self, k, j, initial=None, defer: bool = False, window=None):
         """Match node ``j`` against submap ``k`` around ``initial`` (its pose in the submap's grid frame;
-        default: from the current global estimates). The record is kept and an accepted match
+        default: from the current global estimates) within ``window`` (m, rad; default: ``_window``). The record is kept and an accepted match
         becomes a loop constraint, unless ``defer``: then both are returned for ``_commit``."""
         m = self.matchers[k]
         node = self.nodes[j]
@@ -184,10 +192,12 @@ class GlobalSlam:
             rel = between(self.global_submap(k), self.global_node(j))
             initial = compose(m.submap.local_pose, rel)
         lc = self.lc
+        if window is None:
+            window = self._window(self._middle_node(k), j)
+        lin, ang = window
         t0 = time.perf_counter()
         min_score = self.min_scores[k]
-        res = m.match(node["points"], initial, lc.linear_search_window, math.radians(lc.angular_search_window_deg),
-                      min_score, (lc.refine_occupied_weight, lc.refine_translation_weight, lc.refine_rotation_weight, 20),
+        res = m.match(node["points"], initial, lin, ang, min_score, (lc.refine_occupied_weight, lc.refine_translation_weight, lc.refine_rotation_weight, 20),
                       lc.min_margin, (lc.margin_window, math.radians(lc.margin_window_deg)),
                       (lc.margin_exclusion, math.radians(lc.margin_exclusion_deg)))
         dt = time.perf_counter() - t0
@@ -199,7 +209,8 @@ class GlobalSlam:
         frm = self._nearest_submap_node(k, None if res is None else res.pose)
         rec = {"submap": int(k), "from_scan": int(frm), "to_scan": int(j),
                "from_stamp": self.nodes[frm]["stamp"], "to_stamp": node["stamp"],
-               "search_ms": round(dt * 1e3, 3), "min_score": round(min_score, 4)}
+               "search_ms": round(dt * 1e3, 3), "window": [round(lin, 3), round(math.degrees(ang), 2)],
+               "min_score": round(min_score, 4)}
         loop = None
         if res is None:
             rec.update({"relative_pose": None, "score": None, "accepted": False, "reason": f"no match above {min_score:.3f}",
@@ -235,9 +246,19 @@ class GlobalSlam:
         a = self.submap_anchor[k]
         return compose(self.global_node(a), inverse(self.nodes[a]["local"]))
 
-    def _path_of(self, k) -> float:
-        path = [self.nodes[j]["path"] for j in self.matchers[k].submap.node_indices if j in self.nodes]
-        return float(np.mean(path)) if path else 0.0
+    def _middle_node(self, k) -> int:
+        """The node halfway along submap ``k``'s stretch of the trajectory."""
+        ids = [j for j in self.matchers[k].submap.node_indices if j in self.nodes]
+        return ids[len(ids) // 2] if ids else self.submap_anchor[k]
+
+    def _window(self, a, j) -> tuple[float, float]:
+        """The regular search window between nodes ``a`` and ``j``: the drift bound of their estimates
+        (``drift.py``), at least the margin window (whose exhaustive search verifies the peak) and
+        at most the regular window (beyond it the wide search takes over)."""
+        lc = self.lc
+        t, r = self.drift.between(a, j)
+        return (min(max(t, lc.margin_window), lc.linear_search_window),
+                min(max(r, math.radians(lc.margin_window_deg)), math.radians(lc.angular_search_window_deg)))
 
     def _search_wide(self, submap):
         """A finished submap against older ones the drift may have carried beyond the regular window
@@ -245,14 +266,14 @@ class GlobalSlam:
         lc = self.lc
         s = submap.index
         own = [j for j in submap.node_indices if j in self.nodes]
-        targets = {k: self._path_of(k) for k in self.matchers if k < s - lc.exclude_recent_submaps}
+        targets = [k for k in self.matchers if k < s - lc.exclude_recent_submaps]
         if not own or not targets:
             return
-        shortcuts = [(self.nodes[f.anchor]["path"], self.nodes[f.node]["path"]) for f in self.graph.loops]
         windows = {}
-        for k, d in chain_distances(self._path_of(s), targets, shortcuts).items():
-            lin = min(lc.consistency_drift * d, lc.max_constraint_distance)
-            ang = min(math.radians(lc.consistency_drift_deg) * d, math.pi)
+        middle = self._middle_node(s)
+        for k in targets:
+            lin, ang = self.drift.between(self._middle_node(k), middle)
+            lin, ang = min(lin, lc.max_constraint_distance), min(ang, math.pi)
             if lin > lc.linear_search_window or ang > math.radians(lc.angular_search_window_deg):
                 windows[k] = (lin, ang)  # beyond the regular search's reach
         if not windows:
@@ -300,7 +321,8 @@ class GlobalSlam:
             return
         found_by = []
         for j in pair:
-            rec, loop, res = self._search(k, j, initial=compose(x, self.nodes[j]["local"]), defer=True)
+            rec, loop, res = self._search(k, j, initial=compose(x, self.nodes[j]["local"]), defer=True,
+                                          window=(lc.linear_search_window, math.radians(lc.angular_search_window_deg)))
             rec["search"] = f"wide ±{lin:.1f} m ±{math.degrees(ang):.0f}°, coarse score {found[1]:.3f}"
             found_by.append((rec, loop, res, j))
         if any(loop is None for _, loop, _, _ in found_by):
@@ -333,6 +355,7 @@ class GlobalSlam:
         self.optimize_seconds += time.perf_counter() - t0
         self.optimizations += 1
         self.loops_at_last_optimize = len(self.graph.loops)
+        self.drift.update([(f.anchor, f.node) for f in self.graph.loops])  # the loops the estimates now reflect
         self.since_optimize = 0
         last = self.node_order[-1]
         self.correction = compose(self.graph.node_pose(last), inverse(self.nodes[last]["local"]))

@@ -1,14 +1,14 @@
 """Loop search after a long stretch without loop closure (Hess et al. 2016, Sec. V-C, with the
 search window of Olson 2009's multi-resolution matcher sized by the drift model).
 
-The regular search (``global_slam.GlobalSlam._search``) looks ``linear_search_window`` /
-``angular_search_window_deg`` around the current estimate. Two places are linked by the pose
-graph through the shortest stretch of local SLAM between them, loop closures being
-shortcuts; after ``D`` metres of it their relative pose is uncertain up to the drift model's
-3σ bound (``consistency_drift`` · D, ``consistency_drift_deg`` · D), which can exceed that
-window: a robot back at its start after a long tour with no loop on the way, or a corridor
-walked again from its other end. Then the single-scan search misses the revisit, and a single
-scan in a corridor is too ambiguous over a window of many metres.
+The regular search (``global_slam.GlobalSlam._search``) looks around the current estimate
+as far as the drift bound of ``drift.py`` reaches, up to ``linear_search_window`` /
+``angular_search_window_deg``. The bound grows with the stretch of local SLAM linking two
+places through the pose graph (loop closures are shortcuts) and with every step local SLAM
+could not trust on it, and can exceed that window: a robot back at its start after a long
+tour with no loop on the way, a corridor walked again from its other end, a pose recovered
+after a fast turn. Then the single-scan search misses the revisit, and a single scan in a
+corridor is too ambiguous over a window of many metres.
 
 So, when a submap is finished and an older submap near it is farther than the regular window
 can reach, the finished submap's whole content (its occupied cells) is matched against the
@@ -23,7 +23,6 @@ verification and agree on where the submap lies (within ``consistency_translatio
 """
 from __future__ import annotations
 
-import heapq
 import math
 
 import numpy as np
@@ -36,38 +35,6 @@ from slam2d.range_data import voxel_filter
 COARSE_FACTOR = 4
 #: what a never-observed cell scores in the coarse search (probability × 255: no evidence)
 NEUTRAL = 128
-
-
-def chain_distances(source: float, targets: dict[int, float], shortcuts: list[tuple[float, float]]) -> dict[int, float]:
-    """For each target (a position along the local SLAM path, in metres), the shortest distance
-    from ``source`` walking along the path, where each shortcut (two path positions joined by a
-    loop closure) costs nothing. Dijkstra over the positions involved."""
-    pos = sorted({float(source), *map(float, targets.values()), *(float(p) for s in shortcuts for p in s)})
-    index = {p: i for i, p in enumerate(pos)}
-    jumps: dict[int, list[int]] = {}
-    for a, b in shortcuts:
-        ia, ib = index[float(a)], index[float(b)]
-        jumps.setdefault(ia, []).append(ib)
-        jumps.setdefault(ib, []).append(ia)
-    dist = [math.inf] * len(pos)
-    start = index[float(source)]
-    dist[start] = 0.0
-    heap = [(0.0, start)]
-    while heap:
-        d, i = heapq.heappop(heap)
-        if d > dist[i]:
-            continue
-        steps = [(i + 1, pos[i + 1] - pos[i]) if i + 1 < len(pos) else None,
-                 (i - 1, pos[i] - pos[i - 1]) if i > 0 else None]
-        steps += [(j, 0.0) for j in jumps.get(i, ())]
-        for step in steps:
-            if step is None:
-                continue
-            j, w = step
-            if d + w < dist[j]:
-                dist[j] = d + w
-                heapq.heappush(heap, (d + w, j))
-    return {k: dist[index[float(p)]] for k, p in targets.items()}
 
 
 def coarse_grid(grid) -> MatchGrid:
@@ -118,4 +85,4 @@ def frame_offset(x1, x2, centre) -> tuple[float, float]:
     return float(math.hypot(d[0], d[1])), abs(float(d[2]))
 
 
-__all__ = ["chain_distances", "coarse_grid", "submap_content", "coarse_match", "frame_offset"]
+__all__ = ["coarse_grid", "submap_content", "coarse_match", "frame_offset"]
