@@ -170,8 +170,11 @@ class LocalSlam:
         self.recent_scores: deque[float] = deque(maxlen=RECENT_SCORES)
         w = rt.recovery_linear_window
         depth = min(6, max(1, math.ceil(math.log2(2 * math.ceil(w / cfg.grid.resolution) + 1)) - 1))
+        # the recovery's precomputation pools the whole submap each time: over uint8 it moves a quarter
+        # of the memory (its peak is then scored on the float grid by the fine search around it)
         self.wide_matcher = RealTimeCorrelativeScanMatcher(w, math.radians(rt.recovery_angular_window_deg), depth,
-                                                           rt.translation_delta_cost_weight, rt.rotation_delta_cost_weight)
+                                                           rt.translation_delta_cost_weight, rt.rotation_delta_cost_weight,
+                                                           quantize=True)
 
     def windows(self, motion) -> tuple[float, float]:
         """Search half-widths (m, rad) from the predicted motion: the prediction's error grows with

@@ -91,6 +91,28 @@ def test_grid_grows_and_keeps_content():
     assert g.known.sum() > 500
 
 
+def test_grid_grows_geometrically_along_a_long_path():
+    """A laser carried 200 m down a corridor: the grid reallocates a few dozen times, not once every
+    few metres, and ends up with the same content as a grid sized for the whole path up front."""
+    rng = np.random.default_rng(2)
+    res = 1 / 16  # cells and points on binary fractions: both grids compute every cell exactly
+    g, big = ProbabilityGrid(res), ProbabilityGrid(res)
+    big.ensure_contains(-35.0, -35.0, 235.0, 35.0)
+    shapes = set()
+    for x in np.arange(0.0, 200.0, 0.5):
+        hits = np.c_[x + rng.integers(-30 * 64, 30 * 64, 50) / 64, rng.choice([-2.0, 2.0], 50)]
+        g.insert((x, 0.0), hits)
+        big.insert((x, 0.0), hits)
+        shapes.add(g.shape)
+    assert len(shapes) < 30, len(shapes)
+    # the same cells, wherever each grid's origin lies
+    r0, r1, c0, c1 = g.known_bounds()  # g also holds a margin beyond what it observed
+    off = np.round((g.origin - big.origin) / res).astype(int)
+    np.testing.assert_array_equal(g.probability(0.5)[r0:r1, c0:c1],
+                                  big.probability(0.5)[off[1] + r0:off[1] + r1, off[0] + c0:off[0] + c1])
+    assert np.count_nonzero(big.known) == np.count_nonzero(g.known)
+
+
 @pytest.mark.parametrize("seed", range(3))
 def test_incremental_likelihood_field_equals_distance_transform(seed):
     rng = np.random.default_rng(seed)

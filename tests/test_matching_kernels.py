@@ -304,3 +304,38 @@ def test_smallest_delta_penalty_is_the_lattice_corner(res, window, ang_deg):
     _kernels.apply_delta_penalty(ones, np.ascontiguousarray(params.angles), 0.1, 0.1, res)
     assert pen.smallest_factor(params) == pytest.approx(float(ones.min()), rel=1e-6)
     assert pen.smallest_factor(params) <= float(ones.min()) * (1 + 1e-6)
+
+
+def test_quantize_up_oracle():
+    """uint8 of ceil(v × 255), clipped: never below the float value, less than 1/255 above it."""
+    from slam2d.matching.search import quantized_up
+
+    rng = np.random.default_rng(9)
+    v = rng.random((37, 23)).astype(np.float32)
+    v[0, :4] = [0.0, 1.0, 1.0 / 255.0, -0.25]
+    v[1, :2] = [1.5, np.nextafter(np.float32(2.0 / 255.0), np.float32(1.0))]
+    want = np.clip(np.ceil(v.astype(np.float64) * 255.0), 0, 255).astype(np.uint8)
+    got = _kernels.quantize_up(v)
+    np.testing.assert_array_equal(got, want)
+    inside = (v >= 0) & (v <= 1)
+    assert np.all(got[inside] / 255.0 >= v[inside]) and np.all(got[inside] / 255.0 - v[inside] < 1 / 255.0)
+    g = quantized_up(MatchGrid(v, np.zeros(2), 0.05, 0.3))
+    assert g.values.dtype == np.uint8 and g.unknown == 77.0  # ceil(0.3 × 255) = ceil(76.5)
+
+
+def test_quantized_branch_and_bound_bounds_the_float_score_from_above():
+    """The real-time matcher over a uint8 stack picks the pose the quantized grid scores best and returns
+    the float grid's score there: within 1/255 of the float grid's best; and a min_score the float
+    best exceeds never prunes it away."""
+    from slam2d.matching.real_time import RealTimeCorrelativeScanMatcher
+
+    rng = np.random.default_rng(5)
+    values = (rng.random((60, 60)) ** 3).astype(np.float32)
+    grid = MatchGrid(values, np.zeros(2), 0.05, 0.0)
+    pts = rng.uniform(0.6, 2.4, (40, 2))
+    pred = np.array([0.1, -0.05, 0.02])
+    exact = RealTimeCorrelativeScanMatcher(0.3, 0.1, 0, 0.1, 0.1).match(grid, pred, pts)
+    quant = RealTimeCorrelativeScanMatcher(0.3, 0.1, 4, 0.1, 0.1, quantize=True)
+    q = quant._match(grid, pred, pts, 0.0, 0.3, 0.1)
+    assert exact.score - 1 / 255.0 < q.score <= exact.score + 1e-6
+    assert quant._match(grid, pred, pts, exact.score - 1e-4, 0.3, 0.1) is not None

@@ -30,7 +30,7 @@ def field_kernel(sigma: float, resolution: float, radius: int) -> np.ndarray:
 class ProbabilityGrid:
     """Cells ``[row, col]``; cell (0, 0)'s lower-left corner is at ``origin`` (x, y) in the grid's frame."""
 
-    GROW_MARGIN = 64  # cells added beyond the requested bounds when the grid grows
+    GROW_MARGIN = 64  # cells added beyond the requested bounds when the grid grows (at least)
 
     def __init__(self, resolution: float, hit_probability=0.55, miss_probability=0.49,
                  min_probability=0.12, max_probability=0.97, origin=(0.0, 0.0), shape=(0, 0),
@@ -106,7 +106,7 @@ class ProbabilityGrid:
         # a frozen grid is read, never matched by local SLAM again: its likelihood field goes
         self.field_sigma = None
         self.field = np.zeros((0, 0), dtype=np.float32)
-        self.origin = self.origin + np.array([c0, r0]) * self.resolution
+        self.origin = self._cell_origin(c0, r0)
         self._known_bits = np.packbits(known, axis=1)
         self.stamp = np.zeros((0, 0), dtype=np.int32)
 
@@ -129,22 +129,30 @@ class ProbabilityGrid:
             r1 = math.floor((ymax - self.origin[1]) / res)
             if c0 >= 0 and r0 >= 0 and c1 < cols and r1 < rows:
                 return
-            m = self.GROW_MARGIN
-            add_left = m - c0 if c0 < 0 else 0
-            add_bottom = m - r0 if r0 < 0 else 0
-            add_right = c1 - cols + 1 + m if c1 >= cols else 0
-            add_top = r1 - rows + 1 + m if r1 >= rows else 0
+            # a side that grows gains a quarter of the grid's size beyond the box as well: a long-range
+            # laser carried along a corridor would otherwise copy the whole grid every few scans
+            mc, mr = max(self.GROW_MARGIN, cols // 4), max(self.GROW_MARGIN, rows // 4)
+            add_left = mc - c0 if c0 < 0 else 0
+            add_bottom = mr - r0 if r0 < 0 else 0
+            add_right = c1 - cols + 1 + mc if c1 >= cols else 0
+            add_top = r1 - rows + 1 + mr if r1 >= rows else 0
             new_shape = (rows + add_bottom + add_top, cols + add_left + add_right)
             for name, dtype, fill in self._arrays():
                 old = getattr(self, name)
                 new = np.full(new_shape, fill, dtype=dtype)
                 new[add_bottom:add_bottom + rows, add_left:add_left + cols] = old
                 setattr(self, name, new)
-            self.origin = self.origin - np.array([add_left * res, add_bottom * res])
+            self.origin = self._cell_origin(-add_left, -add_bottom)
         else:
             self.origin, shape = self._frame_for(xmin, ymin, xmax, ymax)
             for name, dtype, fill in self._arrays():
                 setattr(self, name, np.full(shape, fill, dtype=dtype))
+
+    def _cell_origin(self, dc: int, dr: int) -> np.ndarray:
+        """The origin moved by (dc, dr) cells, as a whole number of cells times the resolution: a grid's
+        frame is then the same floats however it grew, and so is every point's cell."""
+        k = np.round(self.origin / self.resolution) + np.array([dc, dr])
+        return k * self.resolution
 
     def _frame_for(self, xmin, ymin, xmax, ymax):
         """(origin, shape) of an empty grid's first extent around the box (``GROW_MARGIN`` beyond it)."""

@@ -13,6 +13,18 @@ from numba import njit
 
 
 @njit(cache=True, nogil=True)
+def quantize_up(values):
+    """``values`` in [0, 1] (any float array, 2-D) as uint8 of ``ceil(v × 255)``, clipped to 0…255."""
+    rows, cols = values.shape
+    out = np.empty((rows, cols), dtype=np.uint8)
+    for r in range(rows):
+        for c in range(cols):
+            q = math.ceil(values[r, c] * 255.0)
+            out[r, c] = 0 if q < 0.0 else (255 if q > 255.0 else np.uint8(q))
+    return out
+
+
+@njit(cache=True, nogil=True)
 def rotated_cells(points, x, y, theta0, angles, ox, oy, inv_res):
     """Cells (A, N, 2) as [col, row] of ``points`` (N, 2) rotated by theta0 + angles[a] and moved to (x, y)."""
     a_n = angles.shape[0]

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slam2d.matching import _kernels
-from slam2d.matching.search import (DeltaPenalty, MatchGrid, PrecomputationStack, SearchParameters, branch_and_bound,
+from slam2d.matching.search import (DeltaPenalty, MatchGrid, PrecomputationStack, SearchParameters, branch_and_bound, quantized_up,
                                    exhaustive)
 
 
@@ -78,7 +78,11 @@ def unmatched_covariance(linear_window: float, angular_window: float) -> np.ndar
 
 class RealTimeCorrelativeScanMatcher:
     def __init__(self, linear_window: float, angular_window: float, branch_depth: int = 0,
-                 translation_delta_cost_weight: float = 0.0, rotation_delta_cost_weight: float = 0.0):
+                 translation_delta_cost_weight: float = 0.0, rotation_delta_cost_weight: float = 0.0,
+                 quantize: bool = False):
+        """``quantize``: branch-and-bound over the grid as uint8 (``search.quantized_up``; values in
+        [0, 1]): its scores are the float scores rounded up by less than 1/255."""
+        self.quantize = quantize
         self.linear_window = linear_window
         self.angular_window = angular_window
         self.branch_depth = branch_depth
@@ -101,7 +105,7 @@ class RealTimeCorrelativeScanMatcher:
 
     def stack_for(self, grid: MatchGrid) -> PrecomputationStack:
         """The branch-and-bound precomputation of ``grid``, to share among several searches of one scan."""
-        return PrecomputationStack(grid, self.branch_depth)
+        return PrecomputationStack(quantized_up(grid) if self.quantize else grid, self.branch_depth)
 
     def _match(self, grid, predicted, points, min_score, linear_window, angular_window, stack=None):
         params = SearchParameters.make(linear_window, angular_window, grid.resolution, points)
@@ -111,10 +115,16 @@ class RealTimeCorrelativeScanMatcher:
         n_cand = cells.shape[0] * (2 * w + 1) ** 2
         if self.branch_depth > 0:
             stack = self.stack_for(grid) if stack is None else stack
-            found = branch_and_bound(stack, cells, w, min_score, self.penalty, params.angles)
+            scale = 255.0 if stack.grid.values.dtype == np.uint8 and grid.values.dtype != np.uint8 else 1.0
+            found = branch_and_bound(stack, cells, w, min_score * scale, self.penalty, params.angles)
             if found is None:
                 return None
             a, dx, dy, score = found
+            if scale != 1.0:  # the quantized grid chose the pose; its score is the float grid's there
+                score = float(_kernels.score_candidates(grid.values, cells, np.array([[a, dx, dy]], np.int32),
+                                                        np.float32(grid.unknown))[0])
+                score *= _kernels._penalty(self.penalty.translation_weight, self.penalty.rotation_weight, res,
+                                           float(params.angles[a]), dx, dy, 1)
             pose = np.array([predicted[0] + dx * res, predicted[1] + dy * res, predicted[2] + params.angles[a]])
             edge = max(abs(dx), abs(dy)) == w or a in (0, len(params.angles) - 1)
             return MatchResult(pose, score, n_cand, on_edge=edge)

@@ -62,6 +62,14 @@ class MatchGrid:
                                       float(self.origin[0]), float(self.origin[1]), 1.0 / self.resolution)
 
 
+def quantized_up(grid: MatchGrid) -> MatchGrid:
+    """A grid of values in [0, 1] as uint8 of ``ceil(v × 255)``: its scores, divided by 255, bound the
+    float grid's from above by less than 1/255, so branch-and-bound over it prunes only what the
+    float grid would, with a quarter of the memory to pool."""
+    return MatchGrid(_kernels.quantize_up(np.asarray(grid.values)), grid.origin, grid.resolution,
+                     float(min(255, math.ceil(grid.unknown * 255.0))))
+
+
 class PrecomputationStack:
     """Max-pooled grids of widths 1, 2, 4, …, 2^depth (Hess et al. 2016, Sec. V-C) in the grid's dtype
     (uint8 for finished submaps), stored one after the other in one flat array.
@@ -107,14 +115,29 @@ def _double_block(prev: np.ndarray, h: int, fill, out: np.ndarray) -> None:
     cell is the max of the four width-h blocks starting at it, h to its right, h above and both.
     With the low-side padding (level d − 1 is offset by h − 1, level d by 2h − 1) that is
     ``out[i, j] = max(prev[i − h, j − h], prev[i − h, j], prev[i, j − h], prev[i, j])``, blocks
-    beyond ``prev`` counting as ``fill``: two maxima of shifted views instead of a sliding window
-    of width 2^d over the grid."""
-    r, c = prev.shape
-    rows, cols = out.shape  # r + h, c + h
-    padded = np.full((r + 2 * h, c + 2 * h), fill, dtype=prev.dtype)
-    padded[h:h + r, h:h + c] = prev
-    half = np.maximum(padded[:rows, :], padded[h:h + rows, :])
-    np.maximum(half[:, :cols], half[:, h:h + cols], out=out)
+    beyond ``prev`` counting as ``fill``: the maximum of two shifted views along the rows, then
+    along the columns, instead of a sliding window of width 2^d over the grid."""
+    half = np.empty((out.shape[0], prev.shape[1]), dtype=prev.dtype)
+    _shifted_max(prev, h, fill, half, 0)
+    _shifted_max(half, h, fill, out, 1)
+
+
+def _shifted_max(a: np.ndarray, h: int, fill, out: np.ndarray, axis: int) -> None:
+    """``out[i] = max(a[i − h], a[i])`` along ``axis`` (out is h longer there), entries beyond ``a``
+    counting as ``fill``."""
+    n = a.shape[axis]
+
+    def at(x, lo, hi):
+        return x[lo:hi] if axis == 0 else x[:, lo:hi]
+
+    if n > h:
+        np.maximum(at(a, 0, n - h), at(a, h, n), out=at(out, h, n))
+        np.maximum(at(a, 0, h), fill, out=at(out, 0, h))
+        np.maximum(at(a, n - h, n), fill, out=at(out, n, n + h))
+    else:  # every entry meets the fill on one side
+        out[...] = fill
+        np.maximum(at(out, 0, n), a, out=at(out, 0, n))
+        np.maximum(at(out, h, h + n), a, out=at(out, h, h + n))
 
 
 def _upper_fill(unknown: float, dtype) -> np.generic:
