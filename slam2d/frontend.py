@@ -258,7 +258,7 @@ class LocalSlam:
         kept_match = None
         match = None
         quality = "unmatched"
-        recovered = False
+        recovered = None  # the pose a recovered match replaced
         submap = self.submaps.matching_submap
         if submap is not None and len(points) >= 3:
             grid = submap.match_grid()
@@ -285,9 +285,10 @@ class LocalSlam:
                 # window holds poses that score higher only by laying new ground onto mapped cells)
                 if wide is not None and (m is None or (wide.score > m.score and (limit is None or wide.score >= limit)
                                                        and self._better_where_observed(submap, grid, wide, m, points))):
+                    # had the recovery chosen wrong, the pose it replaced was the right one
+                    recovered = predicted if m is None else m.pose
                     m = wide
                     self.num_recovered += 1
-                    recovered = True
             t2 = time.perf_counter()
             timings["match"] = (t2 - t1) * 1e3
             if m is not None:
@@ -335,7 +336,7 @@ class LocalSlam:
                 self.num_untrusted += 1
                 self.untrusted_in_a_row += 1
         pose = np.array([pose[0], pose[1], math.remainder(pose[2], 2 * math.pi)])
-        self._doubt += self._step_doubt(quality, recovered, submap is not None)
+        self._doubt += self._step_doubt(quality, pose, recovered, submap is not None)
         self.extrapolator.add(scan.timestamp, pose, scan.odom_pose)
         inserted = quality != "untrusted" and not self.filter.is_similar(scan.timestamp, pose)
         finished = []
@@ -359,14 +360,19 @@ class LocalSlam:
                               inserted_into=inserted_into, match=kept_match, points=points,
                               quality=quality, doubt=doubt)
 
-    def _step_doubt(self, quality, recovered, had_submap) -> np.ndarray:
-        """What a step adds to ``MatchingResult.doubt``: a pose the recovery search chose, or one forced
-        in from the edge, may be anywhere in the recovery window; a scan with too few points to match
-        carries the prediction, off by up to the regular window. An untrusted scan adds nothing: it is
-        not inserted, and the next scan is matched against the same submap."""
+    def _step_doubt(self, quality, pose, replaced, had_submap) -> np.ndarray:
+        """What a step adds to ``MatchingResult.doubt``. A recovered pose and the pose it replaced (the
+        in-window match, or the prediction) cannot both be right: if the recovery chose wrong, the
+        step is off by the distance between them. A pose forced in from the edge of the window may
+        lie anywhere in the recovery window; a scan with too few points to match carries the
+        prediction, off by up to the regular window. An untrusted scan adds nothing: it is not
+        inserted, and the next scan is matched against the same submap."""
         rt = self.cfg.real_time_matcher
-        if (recovered and quality != "untrusted") or quality == "forced":
+        if quality == "forced":
             return np.array([rt.recovery_linear_window, math.radians(rt.recovery_angular_window_deg)])
+        if replaced is not None and quality != "untrusted":
+            return np.array([math.hypot(pose[0] - replaced[0], pose[1] - replaced[1]),
+                             abs(math.remainder(pose[2] - replaced[2], 2 * math.pi))])
         if quality == "unmatched" and had_submap:
             return np.array([rt.linear_search_window, math.radians(rt.angular_search_window_deg)])
         return np.zeros(2)
