@@ -201,13 +201,6 @@ class LocalSlam:
         common = observed_scores(submap.grid, grid, [wide.pose, m.pose], points)
         return common is not None and common[0] > common[1]
 
-    @staticmethod
-    def _forced_pose(submap, grid, edge_pose, predicted, points):
-        """Where a forced scan goes: the edge pose if it fits the cells it shares with the prediction
-        on the mapped part of the submap better than the prediction does, else the prediction."""
-        common = observed_scores(submap.grid, grid, [edge_pose, predicted], points)
-        return edge_pose if common is not None and common[0] > common[1] else predicted
-
     def _recover(self, grid, scan, predicted, points, limit, floor=0.0):
         """Branch-and-bound over the recovery windows around each distinct prediction, in the order the
         motion model believes them (odometry, constant velocity, no motion): the first whose best
@@ -327,14 +320,11 @@ class LocalSlam:
                     self.num_matched += 1
                     self.num_weak += 1
                 elif self.untrusted_in_a_row >= rt.max_untrusted_in_a_row:
-                    # on the edge several times in a row: the robot did move that way; map it, at the
-                    # edge pose where it fits the mapped cells it shares with the prediction better, else
-                    # at the prediction (the edge pose then only lays new ground onto mapped cells)
+                    # on the edge several times in a row: the robot did move that way; map it
                     quality = "forced"
                     self.num_matched += 1
                     self.num_forced += 1
                     self.untrusted_in_a_row = 0
-                    pose = self._forced_pose(submap, grid, pose, predicted, points)
                 else:
                     quality = "untrusted"
             else:

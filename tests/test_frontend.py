@@ -283,18 +283,3 @@ def test_a_recovered_pose_must_win_where_both_poses_are_observed():
     assert LocalSlam._better_where_observed(sub, mg, peak, wide, pts)  # the other way round it wins
     edge = MatchResult(np.zeros(3), 10 / 30, 1, on_edge=True)         # no peak to compare with: the recovery decides
     assert LocalSlam._better_where_observed(sub, mg, wide, edge, pts)
-
-
-def test_a_forced_scan_keeps_the_prediction_unless_the_edge_pose_fits_the_mapped_cells_better():
-    """On the edge several times in a row, a scan is inserted anyway: at the edge pose only where it
-    beats the prediction on the points both put on observed cells; an edge pose that wins by laying
-    new ground onto mapped cells (B in the synthetic world) gives way to the prediction (A)."""
-    from types import SimpleNamespace
-
-    g, mg, pts = _observed_world()
-    sub = SimpleNamespace(grid=g)
-    a, b = np.zeros(3), np.array([-3.0, 0.0, 0.0])
-    np.testing.assert_array_equal(LocalSlam._forced_pose(sub, mg, b, a, pts), a)
-    np.testing.assert_array_equal(LocalSlam._forced_pose(sub, mg, a, b, pts), a)  # A as the edge pose wins
-    far = np.array([6.0, 0.0, 0.0])  # nothing observed in common with A: keep the prediction
-    np.testing.assert_array_equal(LocalSlam._forced_pose(sub, mg, far, a, pts), a)
