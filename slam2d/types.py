@@ -92,7 +92,7 @@ class MatchingResult:
     points: np.ndarray | None = None      # the filtered points that were matched (tracking frame)
     quality: str = "unmatched"            # trusted | weak | forced | untrusted | unmatched
     #: how far (m, rad) the pose may be off beyond the drift model, from the steps since the last
-    #: inserted scan that local SLAM could not trust: the window each came from (global SLAM's windows)
+    #: inserted scan that local SLAM could not vouch for (``LocalSlam._step_doubt``; sizes global SLAM's windows)
     doubt: tuple = (0.0, 0.0)
 
     @property

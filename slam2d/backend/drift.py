@@ -5,10 +5,10 @@ estimate).
 
 Local SLAM drifts with the distance it covers: up to ``per_metre_t`` metres and
 ``per_metre_r`` radians per metre (a 3σ bound of the drift model). A step local SLAM could
-not trust (a pose recovered by the wide search, one forced in from the edge of the window, a
-scan with no match) may be wrong by as much as the window it came from, so such a step adds
-that window to the bound. Each node so carries a cumulative budget along the trajectory,
-one in metres and one in radians.
+not vouch for adds its ``doubt`` (``frontend.LocalSlam._step_doubt``: a recovered pose the
+distance to the pose it replaced, a forced one the recovery window, a scan with no match the
+regular window). Each node so carries a cumulative budget along the trajectory, one in metres
+and one in radians.
 
 The pose graph links two nodes through the cheapest stretch of local SLAM between them, loop
 closures being free shortcuts; but the estimates only reflect the loops that were in the
@@ -58,30 +58,30 @@ class DriftBound:
         ref = len(b) - 1
         ends = np.array([(self.order[a], self.order[j]) for a, j in loops], dtype=np.int64).reshape(-1, 2)
         keys = np.unique(np.concatenate([ends.ravel(), [ref]]))
-        pos = {int(p): i for i, p in enumerate(keys)}
         k = len(keys)
+        # edges between keys: the straight runs between consecutive ones, and the loops; where a loop
+        # joins two consecutive keys it is the cheaper edge (a sparse matrix would sum the two)
+        run_pairs = np.c_[np.arange(k - 1), np.arange(1, k)]
+        loop_pairs = np.sort(np.searchsorted(keys, ends), axis=1)
+        is_run = np.r_[np.ones(k - 1, dtype=bool), np.zeros(len(loop_pairs), dtype=bool)]
+        pairs = np.concatenate([run_pairs, loop_pairs])
+        order = np.lexsort((is_run, pairs[:, 1], pairs[:, 0]))
+        pairs, is_run = pairs[order], is_run[order]
+        keep = np.ones(len(pairs), dtype=bool)
+        keep[1:] = np.any(np.diff(pairs, axis=0) != 0, axis=1)
+        pairs, is_run = pairs[keep], is_run[keep]
+        # between two consecutive keys the budget is a straight run: a node is reached from the nearer end
+        at = np.arange(ref + 1)
+        hi = np.clip(np.searchsorted(keys, at, side="left"), 0, k - 1)
+        lo = np.clip(np.searchsorted(keys, at, side="right") - 1, 0, k - 1)
+        src = int(np.searchsorted(keys, ref))
         dist = np.empty((ref + 1, 2))
-        src = pos[ref]
         for c in range(2):
-            run = np.diff(b[keys, c]) + _EPS  # straight runs between consecutive keys
-            rows = np.r_[np.arange(k - 1), [pos[int(a)] for a in ends[:, 0]]]
-            cols = np.r_[np.arange(1, k), [pos[int(j)] for j in ends[:, 1]]]
-            w = np.r_[run, np.full(len(ends), _EPS)]
-            # a sparse matrix sums repeated entries: keep only the cheapest edge between two keys
-            lo_hi = np.sort(np.c_[rows, cols], axis=1)
-            first = np.lexsort((w, lo_hi[:, 1], lo_hi[:, 0]))
-            lo_hi, w = lo_hi[first], w[first]
-            keep = np.ones(len(w), dtype=bool)
-            keep[1:] = np.any(np.diff(lo_hi, axis=0) != 0, axis=1)
-            g = csr_matrix((w[keep], (lo_hi[keep, 0], lo_hi[keep, 1])), shape=(k, k))
+            w = np.where(is_run, b[keys[pairs[:, 1]], c] - b[keys[pairs[:, 0]], c], 0.0) + _EPS
+            g = csr_matrix((w, (pairs[:, 0], pairs[:, 1])), shape=(k, k))
             dk = dijkstra(g, directed=False, indices=src)
-            # between two consecutive keys the budget is a straight run: reach a node from the nearer end
-            at = np.arange(ref + 1)
-            hi = np.clip(np.searchsorted(keys, at, side="left"), 0, k - 1)
-            lo = np.clip(np.searchsorted(keys, at, side="right") - 1, 0, k - 1)
-            via_lo = dk[lo] + np.abs(b[at, c] - b[keys[lo], c])
-            via_hi = dk[hi] + np.abs(b[keys[hi], c] - b[at, c])
-            dist[:, c] = np.minimum(via_lo, via_hi)
+            dist[:, c] = np.minimum(dk[lo] + np.abs(b[at, c] - b[keys[lo], c]),
+                                    dk[hi] + np.abs(b[keys[hi], c] - b[at, c]))
         self._ref, self._dist = ref, dist
 
     def between(self, a: int, j: int) -> tuple[float, float]:

@@ -21,8 +21,8 @@ import time
 
 import numpy as np
 
-from slam2d.backend.drift import DriftBound
 from slam2d.backend.consistency import ConsistencyParams, inconsistent, pair_tests
+from slam2d.backend.drift import DriftBound
 from slam2d.backend.loop_closure import StackCache, SubmapMatcher, loop_points
 from slam2d.backend.pose_graph import PoseGraph
 from slam2d.backend.wide_search import coarse_grid, coarse_match, frame_offset, submap_content
@@ -184,8 +184,9 @@ class GlobalSlam:
 
     def _search(self, k, j, initial=None, defer: bool = False, window=None):
         """Match node ``j`` against submap ``k`` around ``initial`` (its pose in the submap's grid frame;
-        default: from the current global estimates) within ``window`` (m, rad; default: ``_window``). The record is kept and an accepted match
-        becomes a loop constraint, unless ``defer``: then both are returned for ``_commit``."""
+        default: from the current global estimates) within ``window`` (m, rad; default: ``_window``).
+        The record is kept and an accepted match becomes a loop constraint, unless ``defer``: then
+        both are returned for ``_commit``."""
         m = self.matchers[k]
         node = self.nodes[j]
         if initial is None:
@@ -197,7 +198,8 @@ class GlobalSlam:
         lin, ang = window
         t0 = time.perf_counter()
         min_score = self.min_scores[k]
-        res = m.match(node["points"], initial, lin, ang, min_score, (lc.refine_occupied_weight, lc.refine_translation_weight, lc.refine_rotation_weight, 20),
+        res = m.match(node["points"], initial, lin, ang, min_score,
+                      (lc.refine_occupied_weight, lc.refine_translation_weight, lc.refine_rotation_weight, 20),
                       lc.min_margin, (lc.margin_window, math.radians(lc.margin_window_deg)),
                       (lc.margin_exclusion, math.radians(lc.margin_exclusion_deg)))
         dt = time.perf_counter() - t0

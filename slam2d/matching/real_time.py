@@ -34,8 +34,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from slam2d.matching import _kernels
-from slam2d.matching.search import (DeltaPenalty, MatchGrid, PrecomputationStack, SearchParameters, branch_and_bound, quantized_up,
-                                   exhaustive)
+from slam2d.matching.search import (DeltaPenalty, MatchGrid, PrecomputationStack, SearchParameters, branch_and_bound,
+                                   exhaustive, quantized_up)
 
 
 @dataclass
