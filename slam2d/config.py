@@ -133,7 +133,7 @@ class LoopClosureConfig(_Section):
     max_residual_translation: float = Field(0.2, gt=0.0, description="A loop constraint whose residual after optimization exceeds this [m] is removed.")
     max_residual_rotation_deg: float = Field(1.0, gt=0.0, description="... or this [deg].")
     optimize_every_n_nodes: int = Field(90, ge=1, description="Optimize the pose graph after this many new nodes (and once at the end).")
-    incremental: bool = Field(False, description="Optimize with iSAM2 (only what changed since the last solve) instead of batch Levenberg-Marquardt over the whole graph.")
+    incremental: bool = Field(True, description="Optimize with iSAM2 (Kaess et al. 2012: only the part of the graph that changed since the last solve) instead of batch Levenberg-Marquardt over the whole graph.")
     final_batch: bool = Field(False, description="With incremental, solve the final graph by batch Levenberg-Marquardt instead (slower; it did not change accuracy where measured).")
     refine_occupied_weight: float = Field(20.0, gt=0.0, description="Refinement of loop matches: grid weight (Cartographer: 20).")
     refine_translation_weight: float = Field(10.0, ge=0.0, description="Refinement of loop matches: translation weight (Cartographer: 10).")
