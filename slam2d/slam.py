@@ -19,9 +19,11 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -107,10 +109,16 @@ class Slam:
 
             self.tracker = LocalSlam(cfg, loop_closure=mode == "global")
         self.global_slam = None
+        self._background = None
         if mode == "global":
             from slam2d.backend.global_slam import GlobalSlam
 
-            self.global_slam = GlobalSlam(cfg, self.observer)
+            background = cfg.loop_closure.background and os.name == "posix"  # the solver process passes pipe fds
+            self.global_slam = GlobalSlam(cfg, self.observer, solver_process=background)
+            if background:
+                from slam2d.backend.background import Background
+
+                self._background = Background()
         self._stamps: list[str] = []
         self._times: list[float] = []
         self._local: list[np.ndarray] = []
@@ -149,7 +157,19 @@ class Slam:
         if scan.index != i:  # node ids are input positions
             scan = dataclasses.replace(scan, index=i)
         t0 = time.perf_counter()
-        res = self.tracker.add_scan(scan)
+        if self._background is not None:
+            # the second core is global SLAM's: a parallel kernel on both would wait at its barrier
+            # for a thread the OS has descheduled (outputs are the same with any thread count)
+            import numba
+
+            threads = numba.get_num_threads()
+            numba.set_num_threads(1)
+            try:
+                res = self.tracker.add_scan(scan)
+            finally:
+                numba.set_num_threads(threads)
+        else:
+            res = self.tracker.add_scan(scan)
         self._stage("frontend", (time.perf_counter() - t0) * 1e3)
         for k, v in res.timings.items():
             self._stage(k, v)
@@ -163,10 +183,12 @@ class Slam:
         gs = self.global_slam
         if gs is not None:
             t1 = time.perf_counter()
-            if res.inserted:
-                gs.add_node(scan, res.local_pose, res.range_data.hits, res.covariance, res.inserted_into, res.doubt)
+            if res.inserted:  # what global SLAM keeps of the scan, so the worker shares nothing that changes
+                self._global(gs.add_node, NodeStamp(scan.index, scan.timestamp, scan.timestamp_text),
+                             np.array(res.local_pose, dtype=float), res.range_data.hits, res.covariance,
+                             list(res.inserted_into), res.doubt)
             for sub in res.finished_submaps:
-                gs.add_finished_submap(sub)
+                self._global(gs.add_finished_submap, sub)
             self._stage("global", (time.perf_counter() - t1) * 1e3)
         if res.inserted:
             rd = res.range_data
@@ -177,6 +199,20 @@ class Slam:
         glob = local.copy() if gs is None else compose(gs.correction, local)
         self._stage("add_scan", (time.perf_counter() - t_call) * 1e3)  # the latency a caller sees
         return Estimate(i, scan.timestamp, local.copy(), glob, bool(res.inserted), res.quality)
+
+    def sync(self) -> None:
+        """Wait until global SLAM has taken in every scan added so far (it runs behind ``add_scan`` on
+        a worker thread, ``loop_closure.background``); the next estimate then carries every
+        correction found up to here. Raises what global SLAM raised."""
+        if self._background is not None:
+            self._background.wait()
+
+    def _global(self, fn, *args):
+        """A call into global SLAM: queued for the worker thread, or made now without one."""
+        if self._background is not None:
+            self._background.submit(fn, *args)
+        else:
+            fn(*args)
 
     def run(self, scans) -> SlamResult:
         """``add_scan`` for every scan, then ``finish``."""
@@ -195,12 +231,18 @@ class Slam:
         self._counts["nodes"] = len(self.nodes)
         poses = np.array(self._local, dtype=float).reshape(-1, 3)
         gs = self.global_slam
-        if gs is not None:
+        if self._background is not None:
             t1 = time.perf_counter()
-            poses = globalize(poses, gs.finish())
-            self._stage_ms["final_optimization"] = [(time.perf_counter() - t1) * 1e3]
+            self._background.join()  # global SLAM catches up with the last scans
+            self._stage_ms["global_catch_up"] = [(time.perf_counter() - t1) * 1e3]
         for sub in getattr(self.tracker, "all_submaps", lambda: [])():
             sub.grid.release()  # local SLAM and loop search are over: the map is built from the nodes
+        if gs is not None:
+            t1 = time.perf_counter()
+            gs.release_search()
+            _return_freed_memory()  # before the last solves: the solver process's peak comes on top
+            poses = globalize(poses, gs.finish())
+            self._stage_ms["final_optimization"] = [(time.perf_counter() - t1) * 1e3]
         _return_freed_memory()
         t_map = time.perf_counter()
         node_poses = {n.scan_index: poses[n.scan_index] for n in self.nodes} if gs is not None else None
@@ -260,6 +302,14 @@ class Slam:
         duration = s["duration_s"]
         s["real_time_factor"] = round(duration / wall, 3) if wall > 0 else None
         return s
+
+
+class NodeStamp(NamedTuple):
+    """What global SLAM reads of a node's scan."""
+
+    index: int
+    timestamp: float
+    timestamp_text: str | None
 
 
 def _return_freed_memory() -> None:

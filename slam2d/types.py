@@ -129,3 +129,16 @@ class Estimate:
     global_pose: np.ndarray
     inserted: bool
     quality: str
+
+
+@dataclass
+class LoopFactor:
+    """A loop-closure constraint in the pose graph: node ``node`` seen from submap node ``anchor``."""
+
+    index: int          # its id in the graph that holds it
+    anchor: int         # the submap node it is tied to
+    node: int
+    relative: np.ndarray
+    record: dict        # the constraints.jsonl record, updated with the outcome
+    base: object = None  # its Gaussian noise model before the robust wrapper (in-process graphs only)
+

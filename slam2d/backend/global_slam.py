@@ -24,7 +24,6 @@ import numpy as np
 from slam2d.backend.consistency import ConsistencyParams, inconsistent, pair_tests
 from slam2d.backend.drift import DriftBound
 from slam2d.backend.loop_closure import StackCache, SubmapMatcher, loop_points
-from slam2d.backend.pose_graph import PoseGraph
 from slam2d.backend.wide_search import coarse_grid, coarse_match, frame_offset, submap_content
 from slam2d.geometry import between, compose, inverse
 from slam2d.matching.real_time import unmatched_covariance
@@ -38,15 +37,21 @@ STACK_CACHE_BYTES = 32 * 1024 * 1024
 
 
 class GlobalSlam:
-    def __init__(self, cfg, observer=None):
+    def __init__(self, cfg, observer=None, solver_process: bool = False):
+        """``solver_process``: solve the pose graph in a child process (``solver_process.py``), whose
+        solves then do not hold this process's interpreter lock."""
         from slam2d.observer import Observer
 
         self.cfg = cfg
         self.observer = observer or Observer()
         lc = cfg.loop_closure
         self.lc = lc
-        self.graph = PoseGraph(lc.huber_scale, lc.max_residual_translation, math.radians(lc.max_residual_rotation_deg),
-                               incremental=lc.incremental)
+        if solver_process:
+            from slam2d.backend.solver_process import RemotePoseGraph as Graph
+        else:
+            from slam2d.backend.pose_graph import PoseGraph as Graph
+        self.graph = Graph(lc.huber_scale, lc.max_residual_translation, math.radians(lc.max_residual_rotation_deg),
+                           incremental=lc.incremental)
         self.matchers: dict[int, SubmapMatcher] = {}
         self.min_scores: dict[int, float] = {}  # per finished submap: the score a loop match must reach
         self.stacks = StackCache(STACK_CACHE_BYTES)
@@ -397,16 +402,23 @@ class GlobalSlam:
         """global ← local transform of every finished submap's grid (from its first node)."""
         return {k: self._transform(k) for k in self.matchers}
 
+    def release_search(self):
+        """No more searches: the precomputation stacks and search grids go (Slam.finish releases the
+        submaps' own grids)."""
+        self.coarse.clear()
+        self.stacks.clear()
+        for m in self.matchers.values():
+            m.grid = None
+
     def finish(self) -> dict[int, np.ndarray]:
+        self.release_search()
         if self.lc.gnc_final and self.graph.loops:
             t0 = time.perf_counter()
             self.gnc_removed = len(self.graph.gnc_prune())
             self.optimize_seconds += time.perf_counter() - t0
         self.optimize(final=True)
-        self.coarse.clear()
-        self.stacks.clear()  # no more searches: the precomputation stacks go before the map is built
-        for m in self.matchers.values():  # ... and so do the search grids (Slam.finish releases the submaps')
-            m.grid = None
+        if hasattr(self.graph, "close"):  # a solver process: no more solves
+            self.graph.close()
         return {j: self.graph.node_pose(j) for j in self.node_order}
 
     def summary(self) -> dict:
@@ -423,6 +435,7 @@ class GlobalSlam:
             "search_mean_ms": round(1e3 * self.search_seconds / self.searches, 3) if self.searches else None,
             "optimizations": self.optimizations, "optimize_total_s": round(self.optimize_seconds, 3),
             "final_error": self.graph.last_error[1], "submaps": len(self.submap_local), "nodes": len(self.node_order),
+            "solver_process_peak_rss_mb": getattr(self.graph, "peak_rss_mb", None),
         }}
 
 

@@ -18,10 +18,10 @@ This is the only module that imports gtsam.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-
 import gtsam
 import numpy as np
+
+from slam2d.types import LoopFactor
 
 
 def _key(kind: str, i: int) -> int:
@@ -34,16 +34,6 @@ def _pose(p) -> gtsam.Pose2:
 
 def _arr(p: gtsam.Pose2) -> np.ndarray:
     return np.array([p.x(), p.y(), p.theta()])
-
-
-@dataclass
-class LoopFactor:
-    index: int          # position in the factor graph
-    anchor: int         # the submap's first node
-    node: int
-    relative: np.ndarray
-    record: dict        # the constraints.jsonl record, updated with the outcome
-    base: object = None  # its Gaussian noise model (before the robust wrapper)
 
 
 #: iSAM2 relinearization steps after an update at most (they stop once no variable moved past the threshold)

@@ -240,8 +240,11 @@ class RerunObserver(Observer):
         for k, T in global_slam.submap_transforms().items():
             last = self._submap_logged.get(k)
             # a submap is re-sent only when the optimization moved it visibly (throttles the recording)
+            grid = global_slam.matchers[k].submap.grid
+            if grid.prob.size == 0:  # released for the final solve: the final map replaces the submaps
+                continue
             if last is None or np.hypot(*(T[:2] - last[:2])) > 0.02 or abs(T[2] - last[2]) > 0.0035:
-                rr.log(f"/world/submaps/{k}", grid_map(global_slam.matchers[k].submap.grid, T))
+                rr.log(f"/world/submaps/{k}", grid_map(grid, T))
                 self._submap_logged[k] = T
         # the whole pose graph is re-sent after every optimization, from one bulk read of the node poses
         ids, poses = global_slam.graph.all_node_poses()

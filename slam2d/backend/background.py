@@ -1,0 +1,80 @@
+"""Global SLAM beside local SLAM (Hess et al. 2016, Sec. V; Cartographer's background work queue).
+
+``add_scan`` hands each new node and finished submap to one worker thread, which feeds them to
+``GlobalSlam`` in the order they came, and returns without waiting: loop search and pose-graph
+bookkeeping run beside the next scans. Their kernels release the interpreter lock (numba
+``nogil``), and the pose graph is solved in a child process (``solver_process.py``), since a
+GTSAM solve would hold it throughout. One thread, fed in input order, and local SLAM that never
+reads global SLAM's results: what global SLAM computes does not depend on how far behind it runs,
+so outputs are the same as when everything runs on the caller's thread (tested). Only the
+estimate ``add_scan`` returns depends on timing: it carries the latest optimization's correction.
+An exception on the worker is raised on the caller's next call.
+"""
+from __future__ import annotations
+
+import queue
+import threading
+import weakref
+
+
+class Background:
+    """Calls made in order on one daemon thread."""
+
+    def __init__(self, name: str = "slam2d-global"):
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=_work, args=(self._queue, self), name=name, daemon=True)
+        self._thread.start()
+        # a Slam dropped without finish: the thread ends once it has drained its queue
+        self._finalizer = weakref.finalize(self, self._queue.put, None)
+
+    def submit(self, fn, *args) -> None:
+        """Queue ``fn(*args)``; raises what an earlier call raised."""
+        self.raise_error()
+        self._queue.put((fn, args))
+
+    def pending(self) -> int:
+        """Calls queued and not yet started (roughly: the queue changes as this reads it)."""
+        return self._queue.qsize()
+
+    def wait(self) -> None:
+        """Wait until every call queued so far has run; raise what one of them raised."""
+        done = threading.Event()
+        self.submit(done.set)
+        while not done.wait(0.1):  # the thread may end on an error before it reaches the marker
+            if not self._thread.is_alive() or self._error is not None:
+                break
+        self.raise_error()
+
+    def join(self) -> None:
+        """Wait until every queued call has run; raise what one of them raised."""
+        if self._finalizer.alive:
+            self._finalizer()
+            self._thread.join()
+        self.raise_error()
+
+    def raise_error(self) -> None:
+        """Raise what a call raised (again on every later call: the work after it was skipped)."""
+        if self._error is not None:
+            raise self._error
+
+
+def _work(q: queue.SimpleQueue, owner: Background):
+    # holds the Background only while reporting an error, so dropping it ends the thread
+    ref = weakref.ref(owner)
+    del owner
+    failed = False
+    while True:
+        item = q.get()
+        if item is None:
+            return
+        if failed:  # after a failure the rest is skipped: its input is incomplete
+            continue
+        fn, args = item
+        try:
+            fn(*args)
+        except BaseException as e:  # noqa: BLE001 - handed to the caller's thread
+            failed = True
+            b = ref()
+            if b is not None:
+                b._error = e

@@ -1,0 +1,77 @@
+"""Global SLAM on a worker thread with its solver in a child process (``loop_closure.background``)."""
+import json
+import subprocess
+import sys
+
+import pytest
+
+import slam2d
+from conftest import BUNDLED
+from slam2d.backend.background import Background
+from slam2d.config import config_from_dict
+
+
+def _records(path):  # every field but the search's wall time
+    return [{k: v for k, v in json.loads(line).items() if k != "search_ms"} for line in path.read_text().splitlines()]
+
+
+def test_background_gives_the_outputs_of_the_caller_thread(tmp_path):
+    """Same trajectory, map and constraints, byte for byte, as global SLAM on the caller's thread with
+    gtsam in-process: how far behind the worker runs changes nothing."""
+    outs = {}
+    for background in (True, False):
+        slam = slam2d.Slam(config_from_dict({"loop_closure": {"background": background}}))
+        for scan in slam2d.open_source(BUNDLED):
+            slam.add_scan(scan)
+        outs[background] = slam.finish().save(tmp_path / str(background))
+    for name in ("trajectory.txt", "map.pgm", "map.yaml"):
+        assert (outs[True] / name).read_bytes() == (outs[False] / name).read_bytes(), name
+    a, b = _records(outs[True] / "constraints.jsonl"), _records(outs[False] / "constraints.jsonl")
+    assert a == b and sum(r["in_final_graph"] for r in a) >= 5
+    s = json.loads((outs[True] / "summary.json").read_text())["loop_closure"]
+    assert s["solver_process_peak_rss_mb"] > 0 and s["optimizations"] >= 2
+
+
+def test_the_caller_process_does_not_load_gtsam():
+    code = ("import sys, slam2d\n"
+            f"slam = slam2d.Slam()\n"
+            f"for _, s in zip(range(300), slam2d.open_source({str(BUNDLED)!r})): slam.add_scan(s)\n"
+            "r = slam.finish()\n"
+            "assert r.summary['loop_closure']['optimizations'] >= 1\n"
+            "print('gtsam' in sys.modules)\n")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.strip() == "False"
+
+
+def test_a_global_slam_failure_reaches_the_caller(monkeypatch):
+    """An exception on the worker is raised on the caller's thread (by a later add_scan, sync or finish),
+    and again on every later call: the work after it was skipped."""
+    from slam2d.backend.global_slam import GlobalSlam
+
+    calls = []
+
+    def broken(self, scan, *args):
+        calls.append(scan.index)
+        if len(calls) == 20:
+            raise ValueError("injected failure")
+
+    monkeypatch.setattr(GlobalSlam, "add_node", broken)
+    slam = slam2d.Slam()
+    with pytest.raises(ValueError, match="injected failure"):
+        for _, scan in zip(range(400), slam2d.open_source(BUNDLED)):
+            slam.add_scan(scan)
+        slam.sync()
+    with pytest.raises(ValueError, match="injected failure"):
+        slam.sync()
+    assert len(calls) == 20  # nothing after the failure ran
+
+
+def test_sync_waits_for_the_queue():
+    b = Background()
+    seen = []
+    for i in range(200):
+        b.submit(lambda i=i: (seen.append(i), sum(range(2000))))
+    b.wait()
+    assert seen == list(range(200))  # all of them, in order
+    b.join()
