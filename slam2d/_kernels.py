@@ -1,8 +1,9 @@
-"""Numba kernels of the per-scan range data (Cartographer's ``RangeData`` and ``VoxelFilter``)
-and of the health report's free-space test.
+"""Numba kernels of the per-scan range data (Cartographer's ``RangeData`` and ``VoxelFilter``),
+of the scan's surface tangents (``frontend.degenerate_direction``) and of the health report's
+free-space test.
 
-Plain-numpy oracles live in ``tests/test_range_data.py`` and, for ``free_space_counts``,
-``slam2d.health._violation`` (compared in ``tests/test_health.py``).
+Plain-numpy oracles live in ``tests/test_range_data.py``, ``tests/test_frontend.py`` (tangents)
+and, for ``free_space_counts``, ``slam2d.health._violation`` (compared in ``tests/test_health.py``).
 """
 from __future__ import annotations
 
@@ -72,6 +73,30 @@ def voxel_filter_indices(points, size):
             keep[m] = order[j]
             m += 1
     return np.sort(keep[:m])
+
+
+@njit(cache=True, nogil=True)
+def scan_tangents(points, neighbours, min_baseline, max_gap):
+    """Unit tangent of each point from its k-th neighbours on either side in beam order, for the
+    first k of ``neighbours`` whose baseline lies strictly between ``min_baseline`` and ``max_gap``;
+    (tangents (n, 2), has-one mask (n,)). Same floating-point operations as the numpy version."""
+    n = points.shape[0]
+    tangent = np.zeros((n, 2))
+    have = np.zeros(n, dtype=np.bool_)
+    for k in neighbours:
+        if 2 * k >= n:
+            break
+        for i in range(k, n - k):
+            if have[i]:
+                continue
+            dx = points[i + k, 0] - points[i - k, 0]
+            dy = points[i + k, 1] - points[i - k, 1]
+            length = np.hypot(dx, dy)
+            if min_baseline < length < max_gap:
+                tangent[i, 0] = dx / length
+                tangent[i, 1] = dy / length
+                have[i] = True
+    return tangent, have
 
 
 @njit(cache=True, nogil=True)

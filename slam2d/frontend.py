@@ -24,6 +24,7 @@ from collections import deque
 
 import numpy as np
 
+from slam2d._kernels import scan_tangents
 from slam2d.config import SlamConfig
 from slam2d.geometry import between, compose
 from slam2d.grid.submap import ActiveSubmaps
@@ -93,18 +94,9 @@ def degenerate_direction(points: np.ndarray) -> np.ndarray | None:
     """
     if len(points) < 10:
         return None
-    n = len(points)
-    tangent = np.zeros((n, 2))
-    have = np.zeros(n, dtype=bool)
-    for k in NORMAL_NEIGHBOURS:  # per point, the nearest neighbours far enough apart
-        if 2 * k >= n:
-            break
-        d = points[2 * k:] - points[:-2 * k]
-        length = np.hypot(d[:, 0], d[:, 1])
-        ok = (length > NORMAL_MIN_BASELINE) & (length < NORMAL_NEIGHBOUR_GAP) & ~have[k:n - k]
-        idx = np.flatnonzero(ok) + k
-        tangent[idx] = d[ok] / length[ok, None]
-        have[idx] = True
+    # per point, the nearest neighbours far enough apart (numba kernel; its numpy oracle is in the tests)
+    tangent, have = scan_tangents(np.ascontiguousarray(points, dtype=np.float64), np.array(NORMAL_NEIGHBOURS),
+                                  NORMAL_MIN_BASELINE, NORMAL_NEIGHBOUR_GAP)
     if have.sum() < 10:
         return None
     t = tangent[have]

@@ -146,6 +146,39 @@ def test_degenerate_direction_of_scan_geometry():
     assert degenerate_direction(room) is None
 
 
+def _tangents_oracle(points, neighbours, min_baseline, max_gap):
+    n = len(points)
+    tangent = np.zeros((n, 2))
+    have = np.zeros(n, dtype=bool)
+    for k in neighbours:
+        if 2 * k >= n:
+            break
+        d = points[2 * k:] - points[:-2 * k]
+        length = np.hypot(d[:, 0], d[:, 1])
+        ok = (length > min_baseline) & (length < max_gap) & ~have[k:n - k]
+        idx = np.flatnonzero(ok) + k
+        tangent[idx] = d[ok] / length[ok, None]
+        have[idx] = True
+    return tangent, have
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_scan_tangents_kernel_matches_numpy(seed):
+    """Bit for bit, on scans with gaps (some points have no neighbour in range) and very few points."""
+    from slam2d._kernels import scan_tangents
+    from slam2d.frontend import NORMAL_MIN_BASELINE, NORMAL_NEIGHBOUR_GAP, NORMAL_NEIGHBOURS
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(3, 400))
+    a = np.sort(rng.uniform(-math.pi, math.pi, n))
+    r = rng.uniform(0.5, 8.0, n) * np.where(rng.random(n) < 0.1, 3.0, 1.0)
+    pts = np.c_[r * np.cos(a), r * np.sin(a)]
+    got = scan_tangents(pts, np.array(NORMAL_NEIGHBOURS), NORMAL_MIN_BASELINE, NORMAL_NEIGHBOUR_GAP)
+    want = _tangents_oracle(pts, NORMAL_NEIGHBOURS, NORMAL_MIN_BASELINE, NORMAL_NEIGHBOUR_GAP)
+    assert np.array_equal(got[1], want[1]) and want[1].any() and not want[1].all()
+    assert np.array_equal(got[0], want[0])
+
+
 def test_recovery_prefers_the_odometry_where_the_scene_repeats(monkeypatch):
     """A corridor with a post every 2.5 m on both walls, scans 2.5 m apart: every scan looks like
     the last one. A wheel slip turns the odometry by 30° (beyond the real-time window), so recovery

@@ -33,7 +33,7 @@ log = logging.getLogger(__name__)
 #: bytes of branch-and-bound precomputation stacks kept, most recently searched first (``StackCache``).
 #: A stack is rebuilt from its submap's uint8 grid in far less time than one search takes, so the
 #: budget only needs to hold the submaps searched around the robot at a time.
-STACK_CACHE_BYTES = 32 * 1024 * 1024
+STACK_CACHE_BYTES = 16 * 1024 * 1024
 
 
 class GlobalSlam:
