@@ -103,6 +103,7 @@ def free_space_checks(nodes, poses, resolution: float) -> tuple[np.ndarray, np.n
     from scipy.spatial import cKDTree
 
     from slam2d import _kernels
+    from slam2d.threads import in_threads
 
     out = np.full(len(nodes), np.nan)
     revisit = np.full(len(nodes), np.nan)
@@ -146,8 +147,13 @@ def free_space_checks(nodes, poses, resolution: float) -> tuple[np.ndarray, np.n
     bearings, ranges = np.concatenate([b[0] for b in beams]), np.concatenate([b[1] for b in beams])
     steps = np.array([b[2] for b in beams])
     del beams
-    counts = _kernels.free_space_counts(hits, hit_start, origins, bearings, ranges, beam_start, steps, both,
-                                        float(resolution), VIOLATION_RANGE_SHARE)
+    counts = np.zeros((len(both), 2), dtype=np.int64)
+
+    def count(lo, hi):  # pair by pair: how the pairs are split between threads changes nothing
+        counts[lo:hi] = _kernels.free_space_counts(hits, hit_start, origins, bearings, ranges, beam_start, steps,
+                                                   both[lo:hi], float(resolution), VIOLATION_RANGE_SHARE)
+
+    in_threads(count, len(both))
     ij, ji = counts[:len(pairs)], counts[len(pairs):]
     ok = (ij[:, 1] > 0) & (ji[:, 1] > 0)
     s_ij, s_ji = ij[:, 0] / np.maximum(ij[:, 1], 1), ji[:, 0] / np.maximum(ji[:, 1], 1)

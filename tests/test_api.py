@@ -114,6 +114,8 @@ def test_outputs_identical_with_one_and_two_threads(tmp_path):
     strip = [[{k: v for k, v in json.loads(x).items() if k != "search_ms"} for x in (o / "constraints.jsonl").read_text().splitlines()]
              for o in outs]
     assert strip[0] == strip[1] and strip[0]
+    health = [json.loads((o / "summary.json").read_text())["health"] for o in outs]
+    assert health[0] == health[1]  # its free-space test is split over the threads too
 
 
 def test_finish_frees_the_submaps_and_keeps_a_complete_map():

@@ -22,6 +22,7 @@ from slam2d.geometry import wrap
 from slam2d.grid.probability_grid import ProbabilityGrid
 from slam2d.matching.refine import refine
 from slam2d.matching.search import MatchGrid
+from slam2d.threads import in_threads
 
 
 def refine_trajectory(grid: ProbabilityGrid, poses: np.ndarray, points: list[np.ndarray | None],
@@ -31,10 +32,15 @@ def refine_trajectory(grid: ProbabilityGrid, poses: np.ndarray, points: list[np.
     (None or fewer than 3 points: the pose is kept)."""
     match_grid = MatchGrid(grid.prob, grid.origin, grid.resolution, grid.unknown_probability)
     out = np.array(poses, dtype=float, copy=True)
-    for i, pts in enumerate(points):
-        if pts is None or len(pts) < 3:
-            continue
-        out[i], _ = refine(match_grid, out[i], pts, occupied_weight, translation_weight, rotation_weight, max_iterations)
+
+    def run(lo, hi):  # each scan on its own: the split between threads changes no result
+        for i in range(lo, hi):
+            pts = points[i]
+            if pts is not None and len(pts) >= 3:
+                out[i], _ = refine(match_grid, out[i], pts, occupied_weight, translation_weight, rotation_weight,
+                                   max_iterations)
+
+    in_threads(run, len(points))
     out[:, 2] = wrap(out[:, 2])
     return out
 
