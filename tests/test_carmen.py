@@ -65,6 +65,27 @@ def test_records_spilled_to_disk_read_back_the_same(tmp_path, flaser_line, monke
     assert len(list(log)) == 40  # the second pass can run again
 
 
+def test_in_memory_records_are_handed_on_once_and_a_second_pass_reads_the_file_again(tmp_path, flaser_line):
+    """The first pass's records leave memory as the scans go out; a pass begun again, whole or after
+    one broken off, gives the same scans."""
+    rng = np.random.default_rng(2)
+    text = "".join(flaser_line(list(rng.uniform(0.5, 9.0, 8).round(3)), pose=(0.1 * i, 0.0, 0.0),
+                               odom=(0.1 * i, 0.0, 0.0), ts=f"{100 + i}.5") for i in range(30))
+    log = CarmenLog(write(tmp_path, text))
+    first = []
+    for scan in log:
+        first.append(scan)
+        if len(first) == 10:
+            assert log._spool.records[:9] == [None] * 9  # handed on
+    assert log._spool.file is None and all(r is None for r in log._spool.records)
+    partial = [s for _, s in zip(range(5), log)]
+    again = list(log)
+    for a, b in zip(first, again):
+        np.testing.assert_array_equal(a.ranges, b.ranges)
+        assert a.timestamp_text == b.timestamp_text and a.index == b.index
+    assert len(again) == 30 and [s.index for s in partial] == list(range(5))
+
+
 def test_robotlaser1(tmp_path):
     n = 5
     ranges = " ".join(["1.0", "2.0", "30.0", "4.0", "5.0"])

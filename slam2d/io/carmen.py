@@ -66,6 +66,7 @@ class _RecordStore:
     def __init__(self, budget: int | None = None):
         self.budget = RECORD_MEMORY_BUDGET if budget is None else budget
         self.records: list = []
+        self.consumed = False
         self.nbytes = 0
         self.count = 0
         self.file = None
@@ -95,8 +96,11 @@ class _RecordStore:
         self._dump.clear_memo()
 
     def __iter__(self):
+        self.consumed = True  # a pass hands each in-memory record on once (see CarmenLog._laser_records)
         if self.file is None:
-            yield from self.records
+            for i in range(len(self.records)):
+                rec, self.records[i] = self.records[i], None  # its memory serves the run from here on
+                yield rec
             return
         self.file.seek(0)
         load = pickle.Unpickler(self.file)
@@ -338,8 +342,13 @@ class CarmenLog:
         return f
 
     def _laser_records(self):
-        """(line number, parsed laser record) kept by the first pass."""
+        """(line number, parsed laser record) kept by the first pass; a second pass over a log whose
+        records were kept in memory (and handed on) reads the file again."""
         self.facts()
+        if self._spool.consumed and self._spool.file is None:
+            self._spool.close()
+            self._facts = None
+            self.facts()
         yield from self._spool
 
     def _records(self):
