@@ -157,9 +157,9 @@ class Slam:
         if scan.index != i:  # node ids are input positions
             scan = dataclasses.replace(scan, index=i)
         t0 = time.perf_counter()
-        if self._background is not None:
-            # the second core is global SLAM's: a parallel kernel on both would wait at its barrier
-            # for a thread the OS has descheduled (outputs are the same with any thread count)
+        if self._background is not None and not self._background.idle():
+            # the second core is global SLAM's now: a parallel kernel on both would wait at its
+            # barrier for a thread the OS has descheduled (outputs are the same with any thread count)
             import numba
 
             threads = numba.get_num_threads()

@@ -23,7 +23,8 @@ class Background:
     def __init__(self, name: str = "slam2d-global"):
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._error: BaseException | None = None
-        self._thread = threading.Thread(target=_work, args=(self._queue, self), name=name, daemon=True)
+        self._idle = threading.Event()  # set while the worker waits for work
+        self._thread = threading.Thread(target=_work, args=(self._queue, self, self._idle), name=name, daemon=True)
         self._thread.start()
         # a Slam dropped without finish: the thread ends once it has drained its queue
         self._finalizer = weakref.finalize(self, self._queue.put, None)
@@ -33,9 +34,9 @@ class Background:
         self.raise_error()
         self._queue.put((fn, args))
 
-    def pending(self) -> int:
-        """Calls queued and not yet started (roughly: the queue changes as this reads it)."""
-        return self._queue.qsize()
+    def idle(self) -> bool:
+        """Nothing queued and nothing running (a hint: the worker may take up work as this returns)."""
+        return self._idle.is_set() and self._queue.empty()
 
     def wait(self) -> None:
         """Wait until every call queued so far has run; raise what one of them raised."""
@@ -59,13 +60,16 @@ class Background:
             raise self._error
 
 
-def _work(q: queue.SimpleQueue, owner: Background):
+def _work(q: queue.SimpleQueue, owner: Background, idle: threading.Event):
     # holds the Background only while reporting an error, so dropping it ends the thread
     ref = weakref.ref(owner)
     del owner
     failed = False
     while True:
+        if q.empty():
+            idle.set()
         item = q.get()
+        idle.clear()
         if item is None:
             return
         if failed:  # after a failure the rest is skipped: its input is incomplete
