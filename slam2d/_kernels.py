@@ -2,8 +2,9 @@
 of the scan's surface tangents (``frontend.degenerate_direction``) and of the health report's
 free-space test.
 
-Plain-numpy oracles live in ``tests/test_range_data.py``, ``tests/test_frontend.py`` (tangents)
-and, for ``free_space_counts``, ``slam2d.health._violation`` (compared in ``tests/test_health.py``).
+Plain-numpy oracles live in ``tests/test_range_data.py``, ``tests/test_frontend.py`` (tangents),
+``tests/test_health.py`` (``pick_neighbours``) and, for ``free_space_counts``,
+``slam2d.health._violation`` (compared in ``tests/test_health.py``).
 """
 from __future__ import annotations
 
@@ -134,6 +135,51 @@ def finite_max_count(ranges):
             elif r == top:
                 count += 1
     return top, count
+
+
+@njit(cache=True, nogil=True)
+def pick_neighbours(first, indptr, indices, origins, path, same_span, per_pass):
+    """The health report's neighbours: for node ``first + r`` (row r of the CSR lists ``indptr`` /
+    ``indices``, candidates in index order), its ``per_pass`` nearest candidates other than itself
+    whose path distance to it is below ``same_span`` (same pass), then its ``per_pass`` nearest of
+    the others (other passes); nearest first, equal distances in index order. Rows (i, j, 1 if other
+    pass) in that order."""
+    rows = indptr.shape[0] - 1
+    out = np.empty((rows * 2 * per_pass, 3), dtype=np.int64)
+    m = 0
+    bd = np.empty((2, per_pass))
+    bj = np.empty((2, per_pass), dtype=np.int64)
+    cnt = np.zeros(2, dtype=np.int64)
+    for r in range(rows):
+        i = first + r
+        cnt[0] = 0
+        cnt[1] = 0
+        for p in range(indptr[r], indptr[r + 1]):
+            j = indices[p]
+            if j == i:
+                continue
+            d = np.hypot(origins[j, 0] - origins[i, 0], origins[j, 1] - origins[i, 1])
+            o = 0 if abs(path[j] - path[i]) < same_span else 1
+            c = cnt[o]
+            if c == per_pass and not d < bd[o, c - 1]:
+                continue
+            k = c if c < per_pass else per_pass - 1  # the slot it takes before shifting
+            while k > 0 and bd[o, k - 1] > d:  # after every equal one: stable
+                if k < per_pass:
+                    bd[o, k] = bd[o, k - 1]
+                    bj[o, k] = bj[o, k - 1]
+                k -= 1
+            bd[o, k] = d
+            bj[o, k] = j
+            if c < per_pass:
+                cnt[o] = c + 1
+        for o in range(2):
+            for k in range(cnt[o]):
+                out[m, 0] = i
+                out[m, 1] = bj[o, k]
+                out[m, 2] = o
+                m += 1
+    return out[:m]
 
 
 @njit(cache=True, nogil=True)

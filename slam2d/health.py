@@ -25,6 +25,8 @@ Two kinds of evidence:
 """
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 
 from slam2d.geometry import transform_points
@@ -122,21 +124,15 @@ def free_space_checks(nodes, poses, resolution: float) -> tuple[np.ndarray, np.n
     # the neighbours each node is compared with: the nearest of the same pass, then of other passes
     tree = cKDTree(origins)
     picks = []
-    near = []
-    for i in range(len(origins)):
-        if i % NEIGHBOUR_CHUNK == 0:  # in chunks: all lists at once hold millions of ints on a dense log
-            near = tree.query_ball_point(origins[i:i + NEIGHBOUR_CHUNK], NEIGHBOUR_RADIUS, return_sorted=True)
-        cand = np.asarray(near[i % NEIGHBOUR_CHUNK], dtype=np.int64)
-        cand = cand[cand != i]
-        if len(cand) == 0:
-            continue
-        dist = np.hypot(*(origins[cand] - origins[i]).T)
-        same = np.abs(path[cand] - path[i]) < 2 * NEIGHBOUR_RADIUS
-        for other, mask in ((0, same), (1, ~same)):
-            picks.extend((i, int(j), other) for j in cand[mask][np.argsort(dist[mask], kind="stable")[:NEIGHBOURS_PER_PASS]])
-    if not picks:
+    for i in range(0, len(origins), NEIGHBOUR_CHUNK):  # in chunks: all lists at once hold millions of ints on a dense log
+        near = tree.query_ball_point(origins[i:i + NEIGHBOUR_CHUNK], NEIGHBOUR_RADIUS, return_sorted=True)
+        indptr = np.concatenate([[0], np.cumsum([len(c) for c in near])]).astype(np.int64)
+        indices = np.fromiter(itertools.chain.from_iterable(near), dtype=np.int64, count=int(indptr[-1]))
+        picks.append(_kernels.pick_neighbours(i, indptr, indices, origins, path, 2 * NEIGHBOUR_RADIUS,
+                                              NEIGHBOURS_PER_PASS))
+    pairs = np.concatenate(picks)
+    if not len(pairs):
         return out, revisit
-    pairs = np.array(picks, dtype=np.int64)
     other_pass = pairs[:, 2] == 1
     pairs = np.ascontiguousarray(pairs[:, :2])
     # both directions of every pair in one kernel call

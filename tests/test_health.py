@@ -124,3 +124,47 @@ def test_free_space_kernel_matches_the_numpy_oracle():
     want = [_violation(world[a][1], world[b][0], beams[b], 0.05) for a, b in pairs]
     np.testing.assert_array_equal(got, np.array(want))
     assert (got[:, 0] > 0).any() and (got[:, 1] > 0).all()
+
+
+def _neighbours_oracle(origins, path, radius, per_pass):
+    """The health report's neighbour choice in plain numpy (the loop the kernel replaced)."""
+    from scipy.spatial import cKDTree
+
+    picks = []
+    near = cKDTree(origins).query_ball_point(origins, radius, return_sorted=True)
+    for i in range(len(origins)):
+        cand = np.asarray(near[i], dtype=np.int64)
+        cand = cand[cand != i]
+        if len(cand) == 0:
+            continue
+        dist = np.hypot(*(origins[cand] - origins[i]).T)
+        same = np.abs(path[cand] - path[i]) < 2 * radius
+        for other, mask in ((0, same), (1, ~same)):
+            picks.extend((i, int(j), other) for j in cand[mask][np.argsort(dist[mask], kind="stable")[:per_pass]])
+    return np.array(picks, dtype=np.int64).reshape(-1, 3)
+
+
+def test_neighbour_kernel_matches_the_numpy_oracle():
+    """Exactly the oracle's pairs, in its order, on a path that comes back several times (other passes),
+    with nodes on a lattice so that many distances tie, and in chunks as the report calls it."""
+    import itertools
+
+    from scipy.spatial import cKDTree
+
+    from slam2d._kernels import pick_neighbours
+    from slam2d.health import NEIGHBOUR_RADIUS, NEIGHBOURS_PER_PASS
+
+    rng = np.random.default_rng(4)
+    t = np.linspace(0, 6 * math.pi, 900)
+    origins = np.round(np.c_[20 * np.cos(t) + 0.5 * t, 12 * np.sin(t)] + rng.normal(0, 0.3, (900, 2)), 0)
+    path = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(origins, axis=0).T))])
+    want = _neighbours_oracle(origins, path, NEIGHBOUR_RADIUS, NEIGHBOURS_PER_PASS)
+    tree, got = cKDTree(origins), []
+    for i in range(0, len(origins), 100):
+        near = tree.query_ball_point(origins[i:i + 100], NEIGHBOUR_RADIUS, return_sorted=True)
+        indptr = np.concatenate([[0], np.cumsum([len(c) for c in near])]).astype(np.int64)
+        indices = np.fromiter(itertools.chain.from_iterable(near), dtype=np.int64)
+        got.append(pick_neighbours(i, indptr, indices, origins, path, 2 * NEIGHBOUR_RADIUS, NEIGHBOURS_PER_PASS))
+    got = np.concatenate(got)
+    assert (want[:, 2] == 1).sum() > 500 and len(want) > 3000  # other passes are there
+    np.testing.assert_array_equal(got, want)
