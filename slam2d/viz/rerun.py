@@ -289,6 +289,8 @@ class RerunObserver(Observer):
 
     def log_final(self, seq, grid, poses, nodes, node_in_submap, loops, rejected, stats: dict) -> None:
         rr.set_time("scan", sequence=seq)
+        # the final map replaces the submaps (which were last drawn before the final solve)
+        rr.log("/world/submaps", rr.Clear(recursive=True))
         rr.log("/world/map", grid_map(grid, z=Z_MAP, opacity=1.0))
         rr.log("/world/trajectory", rr.LineStrips3D([xyz(poses[:, :2], Z_GRAPH)], colors=[TRAJ], radii=[0.02]))
         self.on_constraints(seq, nodes, node_in_submap, loops, rejected)
