@@ -3,10 +3,10 @@
 The pipeline of Hess et al. 2016 (Sec. III): every scan goes through local SLAM
 (``frontend.LocalSlam``, Sec. IV); scans that pass the motion filter become nodes of the
 pose graph (``backend.global_slam.GlobalSlam``, Sec. V), which closes loops against
-finished submaps as they come. ``finish`` runs the final optimization, builds the map
-from the optimized nodes (``grid.map_builder``), refines every scan once in it
-(``backend.final_refinement``) and assesses the run (``health``). ``slam2d run`` is a
-thin caller of this module::
+finished submaps as they come, on a worker thread beside local SLAM (``backend.background``).
+``finish`` runs the final optimization, builds the map from the optimized nodes
+(``grid.map_builder``), refines every scan once in it (``backend.final_refinement``) and
+assesses the run (``health``). ``slam2d run`` is a thin caller of this module::
 
     import slam2d
     slam = slam2d.Slam()

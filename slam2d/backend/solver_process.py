@@ -188,12 +188,16 @@ def _serve(recv: Connection, send: Connection):
             for f in dropped:
                 loops.pop(f.record["id"])
             reply["dropped"] = [(f.record["id"], f.record["reason"]) for f in dropped]
-            send.send(("ok", reply))
+            out = ("ok", reply)
         except Exception as e:  # reported to the caller, which raises it
             if kind in ("init", "ops"):
                 failed = e
-            else:
-                send.send(("error", f"{type(e).__name__}: {e}"))
+                continue
+            out = ("error", f"{type(e).__name__}: {e}")
+        try:
+            send.send(out)
+        except OSError:  # the caller has gone (it stopped on an error of its own, which it reports)
+            return
 
 
 def _peak_rss_mb() -> float:
