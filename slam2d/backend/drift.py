@@ -32,27 +32,29 @@ class DriftBound:
     def __init__(self, per_metre_t: float, per_metre_r: float):
         self.per_metre = (float(per_metre_t), float(per_metre_r))
         self.order: dict[int, int] = {}      # node id -> position along the trajectory
-        self._budget: list[tuple[float, float]] = []
-        self._cum: np.ndarray | None = None  # (n, 2) budgets as an array, made on demand
+        self._buf = np.zeros((64, 2))        # cumulative budgets (m, rad) in the first _n rows; grows by doubling
+        self._n = 0
         self._ref = None                     # position of the newest node at the last update
         self._dist: np.ndarray | None = None  # (n_ref + 1, 2) budget distance from it to every node up to it
 
     def add(self, node: int, step: float, extra_t: float = 0.0, extra_r: float = 0.0) -> None:
         """Append ``node`` after a local SLAM step of ``step`` metres; ``extra_*``: what a step local
         SLAM could not trust adds (m, rad)."""
-        last = self._budget[-1] if self._budget else (0.0, 0.0)
-        self.order[node] = len(self._budget)
-        self._budget.append((last[0] + self.per_metre[0] * step + extra_t, last[1] + self.per_metre[1] * step + extra_r))
-        self._cum = None
+        n = self._n
+        last = (float(self._buf[n - 1, 0]), float(self._buf[n - 1, 1])) if n else (0.0, 0.0)
+        if n == len(self._buf):
+            self._buf = np.concatenate([self._buf, np.zeros_like(self._buf)])
+        self.order[node] = n
+        self._buf[n] = (last[0] + self.per_metre[0] * step + extra_t, last[1] + self.per_metre[1] * step + extra_r)
+        self._n = n + 1
 
     def budget(self) -> np.ndarray:
-        if self._cum is None or len(self._cum) != len(self._budget):
-            self._cum = np.array(self._budget, dtype=float).reshape(-1, 2)
-        return self._cum
+        """(n, 2) cumulative budgets (m, rad) of the nodes in trajectory order (a view: read, do not keep)."""
+        return self._buf[:self._n]
 
     def update(self, loops) -> None:
         """The loops ``(anchor, node)`` the estimates now reflect (call after each optimization)."""
-        if not self._budget:
+        if not self._n:
             return
         b = self.budget()
         ref = len(b) - 1

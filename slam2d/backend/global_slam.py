@@ -376,8 +376,8 @@ class GlobalSlam:
         ids = [i for i in self.matchers[k].submap.node_indices if i in self.nodes]
         if pose is None or not ids:
             return self.submap_anchor[k]
-        d = [np.hypot(*(self.nodes[i]["local"][:2] - pose[:2])) for i in ids]
-        return int(ids[int(np.argmin(d))])
+        xy = np.array([self.nodes[i]["local"][:2] for i in ids])
+        return int(ids[int(np.argmin(np.hypot(xy[:, 0] - pose[0], xy[:, 1] - pose[1])))])
 
     def _check_consistency(self):
         """Remove loops that contradict other loops through the local chain (``consistency.py``)."""
