@@ -81,6 +81,7 @@ DEGENERATE_RATIO = 0.01
 NORMAL_NEIGHBOURS = (1, 2, 4, 8)
 NORMAL_MIN_BASELINE = 0.15
 NORMAL_NEIGHBOUR_GAP = 1.0
+_NEIGHBOURS = np.array(NORMAL_NEIGHBOURS)  # as the kernel takes them, made once
 
 
 def degenerate_direction(points: np.ndarray) -> np.ndarray | None:
@@ -96,7 +97,7 @@ def degenerate_direction(points: np.ndarray) -> np.ndarray | None:
     if len(points) < 10:
         return None
     # per point, the nearest neighbours far enough apart (numba kernel; its numpy oracle is in the tests)
-    tangent, have = scan_tangents(np.ascontiguousarray(points, dtype=np.float64), np.array(NORMAL_NEIGHBOURS),
+    tangent, have = scan_tangents(np.ascontiguousarray(points, dtype=np.float64), _NEIGHBOURS,
                                   NORMAL_MIN_BASELINE, NORMAL_NEIGHBOUR_GAP)
     if have.sum() < 10:
         return None

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
 
+import numba
 import numpy as np
 
 from slam2d.config import SlamConfig, load_config
@@ -160,8 +161,6 @@ class Slam:
         if self._background is not None and not self._background.idle():
             # the second core is global SLAM's now: a parallel kernel on both would wait at its
             # barrier for a thread the OS has descheduled (outputs are the same with any thread count)
-            import numba
-
             threads = numba.get_num_threads()
             numba.set_num_threads(1)
             try:
