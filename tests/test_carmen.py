@@ -56,7 +56,7 @@ def test_records_spilled_to_disk_read_back_the_same(tmp_path, flaser_line, monke
     monkeypatch.setattr(carmen, "RECORD_MEMORY_BUDGET", 2000)  # spills after a few records
     log = CarmenLog(path)
     spilled = list(log)
-    assert log._spool.file is not None and log._spool.records == []
+    assert log._spool.file is not None and log._spool.in_memory() == 0
     assert len(spilled) == len(in_memory) == 40
     for a, b in zip(in_memory, spilled):
         np.testing.assert_array_equal(a.ranges, b.ranges)
@@ -65,9 +65,13 @@ def test_records_spilled_to_disk_read_back_the_same(tmp_path, flaser_line, monke
     assert len(list(log)) == 40  # the second pass can run again
 
 
-def test_in_memory_records_are_handed_on_once_and_a_second_pass_reads_the_file_again(tmp_path, flaser_line):
-    """The first pass's records leave memory as the scans go out; a pass begun again, whole or after
-    one broken off, gives the same scans."""
+def test_in_memory_records_are_handed_on_once_and_a_second_pass_reads_the_file_again(tmp_path, flaser_line,
+                                                                                     monkeypatch):
+    """The first pass's records leave memory block by block as the scans go out; a pass begun again,
+    whole or after one broken off, gives the same scans."""
+    import slam2d.io.carmen as carmen
+
+    monkeypatch.setattr(carmen, "RECORD_BLOCK", 4)
     rng = np.random.default_rng(2)
     text = "".join(flaser_line(list(rng.uniform(0.5, 9.0, 8).round(3)), pose=(0.1 * i, 0.0, 0.0),
                                odom=(0.1 * i, 0.0, 0.0), ts=f"{100 + i}.5") for i in range(30))
@@ -75,9 +79,9 @@ def test_in_memory_records_are_handed_on_once_and_a_second_pass_reads_the_file_a
     first = []
     for scan in log:
         first.append(scan)
-        if len(first) == 10:
-            assert log._spool.records[:9] == [None] * 9  # handed on
-    assert log._spool.file is None and all(r is None for r in log._spool.records)
+        if len(first) == 10:  # the third block is being handed on; the first two are gone
+            assert log._spool.in_memory() == 30 - 12
+    assert log._spool.file is None and log._spool.in_memory() == 0
     partial = [s for _, s in zip(range(5), log)]
     again = list(log)
     for a, b in zip(first, again):
@@ -278,3 +282,31 @@ def test_fuzz_valid_flaser_round_trips(tmp_path, flaser_line, ranges, pose):
     p.write_text(flaser_line([f"{r:.3f}" for r in ranges], pose=pose))
     (s,) = list(CarmenLog(p))
     np.testing.assert_array_equal(s.ranges, np.float32([float(f"{r:.3f}") for r in ranges]))
+
+
+def test_packed_records_give_back_exactly_what_was_parsed():
+    """The in-memory store packs records into flat buffers; every field comes back bit for bit,
+    remissions and a line's own max_range included (and their absence)."""
+    from slam2d.io.carmen import _Block, _Parsed
+
+    rng = np.random.default_rng(3)
+    parsed = []
+    for i in range(7):
+        n = 5 + i
+        inten = rng.random(n).astype(np.float32) if i % 2 else None
+        parsed.append(_Parsed("ROBOTLASER1" if i % 3 else "FLASER", 1e9 + i / 3, f"{1e9 + i / 3:.6f}", rng.random(n) * 80,
+                              -math.pi / 2 + i * 1e-3, math.pi / 180 * (1 + i), rng.random(3), rng.random(3),
+                              None if i % 2 == 0 else 81.9 - i, inten))
+    block = _Block()
+    for i, p in enumerate(parsed):
+        block.append(100 + i, p)
+    for i, p in enumerate(parsed):
+        lineno, q = block.record(i)
+        assert lineno == 100 + i and q.kind == p.kind and q.timestamp == p.timestamp
+        assert q.timestamp_text == p.timestamp_text and q.max_range == p.max_range
+        assert (q.angle_min, q.angle_increment) == (p.angle_min, p.angle_increment)
+        for a, b in ((q.ranges, p.ranges), (q.laser_pose, p.laser_pose), (q.robot_pose, p.robot_pose)):
+            assert a.dtype == b.dtype and np.array_equal(a, b)
+        assert (q.intensities is None) == (p.intensities is None)
+        if p.intensities is not None:
+            assert q.intensities.dtype == np.float32 and np.array_equal(q.intensities, p.intensities)

@@ -28,6 +28,7 @@ from __future__ import annotations
 import logging
 import math
 import pickle
+from array import array
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -59,13 +60,63 @@ _LASER_TYPES = ("FLASER", "RLASER", "ROBOTLASER1")
 RECORD_MEMORY_BUDGET = 256 * 1024 * 1024
 
 
+#: records per block of the in-memory store; a pass frees each block once it has handed it on
+RECORD_BLOCK = 1024
+_SCALARS = 10  # timestamp, angle_min, angle_increment, laser pose (3), robot pose (3), max_range (NaN: none)
+
+
+class _Block:
+    """Parsed laser records packed into a few flat buffers (``array.array``, one allocation each):
+    per-record numpy arrays and strings would scatter small long-lived objects among the parser's
+    short-lived ones, and the allocator could then give little of the parse's memory back."""
+
+    __slots__ = ("ranges", "range_end", "intensities", "intensity_start", "scalars", "lineno", "kind", "text",
+                 "text_end")
+
+    def __init__(self):
+        self.ranges, self.range_end = array("d"), array("q")
+        self.intensities, self.intensity_start = array("f"), array("q")  # start -1: no intensities
+        self.scalars, self.lineno, self.kind = array("d"), array("q"), array("b")
+        self.text, self.text_end = bytearray(), array("q")
+
+    def __len__(self):
+        return len(self.lineno)
+
+    def append(self, lineno: int, p: "_Parsed"):
+        self.ranges.frombytes(np.ascontiguousarray(p.ranges, dtype=np.float64).tobytes())
+        self.range_end.append(len(self.ranges))
+        if p.intensities is None:
+            self.intensity_start.append(-1)
+        else:
+            self.intensity_start.append(len(self.intensities))
+            self.intensities.frombytes(np.ascontiguousarray(p.intensities, dtype=np.float32).tobytes())
+        self.scalars.extend((p.timestamp, p.angle_min, p.angle_increment, *map(float, p.laser_pose),
+                             *map(float, p.robot_pose), math.nan if p.max_range is None else p.max_range))
+        self.lineno.append(lineno)
+        self.kind.append(_LASER_TYPES.index(p.kind))
+        self.text += p.timestamp_text.encode()
+        self.text_end.append(len(self.text))
+
+    def record(self, i: int) -> tuple[int, "_Parsed"]:
+        r0 = self.range_end[i - 1] if i else 0
+        n = self.range_end[i] - r0
+        ranges = np.frombuffer(self.ranges, dtype=np.float64, count=n, offset=8 * r0).copy()
+        i0 = self.intensity_start[i]  # a line's remissions are kept only when there is one per reading
+        inten = None if i0 < 0 else np.frombuffer(self.intensities, dtype=np.float32, count=n, offset=4 * i0).copy()
+        v = self.scalars[_SCALARS * i:_SCALARS * (i + 1)]
+        t0 = self.text_end[i - 1] if i else 0
+        return self.lineno[i], _Parsed(_LASER_TYPES[self.kind[i]], v[0], self.text[t0:self.text_end[i]].decode(), ranges,
+                                       v[1], v[2], np.array(v[3:6]), np.array(v[6:9]),
+                                       None if math.isnan(v[9]) else v[9], inten)
+
+
 class _RecordStore:
-    """The first pass's parsed laser records: in memory up to a byte budget, then spilled to
-    an unnamed temporary file (the disk, not memory, grows with the log)."""
+    """The first pass's parsed laser records: in memory (packed in blocks) up to a byte budget, then
+    spilled to an unnamed temporary file (the disk, not memory, grows with the log)."""
 
     def __init__(self, budget: int | None = None):
         self.budget = RECORD_MEMORY_BUDGET if budget is None else budget
-        self.records: list = []
+        self.blocks: list[_Block | None] = []
         self.consumed = False
         self.nbytes = 0
         self.count = 0
@@ -75,19 +126,27 @@ class _RecordStore:
     def append(self, lineno: int, p: "_Parsed"):
         self.count += 1
         if self.file is None:
-            self.records.append((lineno, p))
-            self.nbytes += p.ranges.nbytes + 200 + (0 if p.intensities is None else p.intensities.nbytes)
+            if not self.blocks or len(self.blocks[-1]) >= RECORD_BLOCK:
+                self.blocks.append(_Block())
+            self.blocks[-1].append(lineno, p)
+            self.nbytes += p.ranges.size * 8 + 100 + (0 if p.intensities is None else p.intensities.size * 4)
             if self.nbytes > self.budget:
                 self._spill()
             return
         self._write(lineno, p)
 
+    def _memory_records(self):
+        for b in range(len(self.blocks)):
+            block = self.blocks[b]
+            for i in range(len(block)):
+                yield block.record(i)
+
     def _spill(self):
         self.file = tempfile.TemporaryFile()
         self._dump = pickle.Pickler(self.file, protocol=pickle.HIGHEST_PROTOCOL)
-        for lineno, p in self.records:
+        for lineno, p in self._memory_records():
             self._write(lineno, p)
-        self.records = []
+        self.blocks = []
 
     def _write(self, lineno, p):
         self._dump.dump((lineno, p.kind, p.timestamp, p.timestamp_text, p.ranges.tobytes(), p.angle_min,
@@ -95,12 +154,17 @@ class _RecordStore:
                          None if p.intensities is None else p.intensities.tobytes()))
         self._dump.clear_memo()
 
+    def in_memory(self) -> int:
+        """Records still held in memory."""
+        return sum(len(b) for b in self.blocks if b is not None)
+
     def __iter__(self):
-        self.consumed = True  # a pass hands each in-memory record on once (see CarmenLog._laser_records)
+        self.consumed = True  # a pass hands each in-memory block on once (see CarmenLog._laser_records)
         if self.file is None:
-            for i in range(len(self.records)):
-                rec, self.records[i] = self.records[i], None  # its memory serves the run from here on
-                yield rec
+            for b in range(len(self.blocks)):
+                block, self.blocks[b] = self.blocks[b], None  # handed on: its memory serves the run once passed
+                for i in range(len(block)):
+                    yield block.record(i)
             return
         self.file.seek(0)
         load = pickle.Unpickler(self.file)
@@ -110,7 +174,7 @@ class _RecordStore:
                               None if inten is None else np.frombuffer(inten, dtype=np.float32))
 
     def close(self):
-        self.records = []
+        self.blocks = []
         if self.file is not None:
             self.file.close()
 
