@@ -2,7 +2,8 @@
 of the scan's surface tangents (``frontend.degenerate_direction``) and of the health report's
 free-space test.
 
-Plain-numpy oracles live in ``tests/test_range_data.py``, ``tests/test_frontend.py`` (tangents),
+Plain-numpy oracles live in ``tests/test_range_data.py`` (the adaptive voxel filter's is the Python
+bisection kept there), ``tests/test_frontend.py`` (tangents),
 ``tests/test_health.py`` (``pick_neighbours``) and, for ``free_space_counts``,
 ``slam2d.health._violation`` (compared in ``tests/test_health.py``).
 """
@@ -74,6 +75,33 @@ def voxel_filter_indices(points, size):
             keep[m] = order[j]
             m += 1
     return np.sort(keep[:m])
+
+
+@njit(cache=True, nogil=True)
+def adaptive_voxel_indices(points, min_points, max_length):
+    """``voxel_filter_indices`` at the coarsest cell up to ``max_length`` that keeps ``min_points``
+    points: the cell is halved until enough remain, then bisected to within 10 % (the bisection of
+    Cartographer's adaptive voxel filter; ``range_data.adaptive_voxel_filter`` is its Python oracle in
+    the tests). The caller handles clouds of at most ``min_points`` points."""
+    result = voxel_filter_indices(points, max_length)
+    if result.shape[0] >= min_points:
+        return result
+    high = max_length
+    while high > 0.01 * max_length:
+        low = 0.5 * high
+        result = voxel_filter_indices(points, low)
+        if result.shape[0] >= min_points:
+            while high / low > 1.1:
+                mid = 0.5 * (low + high)
+                cand = voxel_filter_indices(points, mid)
+                if cand.shape[0] >= min_points:
+                    low = mid
+                    result = cand
+                else:
+                    high = mid
+            return result
+        high = low
+    return result
 
 
 @njit(cache=True, nogil=True)

@@ -51,27 +51,9 @@ def voxel_filter(points: np.ndarray, size: float) -> np.ndarray:
 
 def adaptive_voxel_filter(points: np.ndarray, min_points: int, max_length: float) -> np.ndarray:
     """Cartographer's adaptive voxel filter: the coarsest voxel filter, up to ``max_length``, that still
-    keeps ``min_points`` points (bisection on the cell size); a cloud of at most ``min_points`` points
-    is returned as it is (so is every cloud when ``min_points`` is 0). Matching costs time in
-    proportion to the points."""
+    keeps ``min_points`` points (bisection on the cell size, in ``_kernels.adaptive_voxel_indices``); a
+    cloud of at most ``min_points`` points is returned as it is (so is every cloud when ``min_points``
+    is 0). Matching costs time in proportion to the points."""
     if min_points <= 0 or len(points) <= min_points:
         return points
-    coarsest = voxel_filter(points, max_length)
-    if len(coarsest) >= min_points:
-        return coarsest
-    high = max_length
-    result = coarsest
-    while high > 0.01 * max_length:  # halve the cell until enough points remain, then bisect
-        low = 0.5 * high
-        result = voxel_filter(points, low)
-        if len(result) >= min_points:
-            while high / low > 1.1:
-                mid = 0.5 * (low + high)
-                cand = voxel_filter(points, mid)
-                if len(cand) >= min_points:
-                    low, result = mid, cand
-                else:
-                    high = mid
-            return result
-        high = low
-    return result
+    return points[_kernels.adaptive_voxel_indices(points, int(min_points), float(max_length))]

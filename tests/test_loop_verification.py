@@ -138,6 +138,37 @@ def test_pair_tests_equal_testing_every_pair():
         assert np.all(i < k) and len(set(zip(i.tolist(), k.tolist()))) == len(i)
 
 
+def test_pair_cache_equals_testing_the_current_loops_afresh():
+    """Loops arrive in batches and some are removed between calls (as in global SLAM): every call's
+    tests, taken partly from earlier calls, are exactly ``pair_tests`` of the loops alive then."""
+    from slam2d.backend.consistency import PairCache
+
+    rng = np.random.default_rng(11)
+    p = ConsistencyParams()
+    total = 150
+    pa = np.sort(rng.uniform(0, 400, total))  # loops found along the way: anchors in any order of path
+    rng.shuffle(pa[: total // 2])
+    pj = pa + rng.uniform(0, 300, total)
+    la = np.c_[rng.uniform(-20, 20, (total, 2)), rng.uniform(-3, 3, total)]
+    lj = np.c_[rng.uniform(-20, 20, (total, 2)), rng.uniform(-3, 3, total)]
+    truth = np.array([between(a, b) for a, b in zip(la, lj)])
+    rel = truth + rng.normal(0, [0.3, 0.3, 0.03], (total, 3)) * (rng.uniform(size=(total, 1)) < 0.5)
+    ids = np.cumsum(rng.integers(1, 30, total))  # factor indices: increasing, with gaps
+    cache, alive, added = PairCache(p), [], 0
+    while added < total:
+        step = int(rng.integers(0, 12))
+        alive += list(range(added, min(total, added + step)))
+        added = min(total, added + step)
+        for _ in range(int(rng.integers(0, 3))):  # removals, new loops or old
+            if len(alive) > 2:
+                alive.pop(int(rng.integers(0, len(alive))))
+        a = np.array(alive, dtype=np.int64)
+        got = cache.tests(ids[a], rel[a], la[a], lj[a], pa[a], pj[a])
+        want = pair_tests(rel[a], la[a], lj[a], pa[a], pj[a], p)
+        assert got.n == want.n and np.array_equal(got.dense(), want.dense())
+        assert len(got.src) == len(want.src)
+
+
 def test_consistency_check_rejects_an_injected_false_loop_on_the_simulator():
     cfg = SlamConfig()
     # the consistency check alone judges here: the residual check and GNC, which can reach the false

@@ -117,3 +117,42 @@ def test_adaptive_voxel_filter_keeps_about_the_minimum():
     rows = {tuple(p) for p in wall.tolist()}
     assert all(tuple(p) in rows for p in out.tolist())  # a subset of the input, not new points
     assert adaptive_voxel_filter(wall, 0, 0.9) is wall  # 0 disables it
+
+
+def adaptive_voxel_oracle(points, min_points, max_length):
+    """The bisection in plain Python over ``voxel_oracle``."""
+    if min_points <= 0 or len(points) <= min_points:
+        return points
+    coarsest = voxel_oracle(points, max_length)
+    if len(coarsest) >= min_points:
+        return coarsest
+    high, result = max_length, coarsest
+    while high > 0.01 * max_length:
+        low = 0.5 * high
+        result = voxel_oracle(points, low)
+        if len(result) >= min_points:
+            while high / low > 1.1:
+                mid = 0.5 * (low + high)
+                cand = voxel_oracle(points, mid)
+                if len(cand) >= min_points:
+                    low, result = mid, cand
+                else:
+                    high = mid
+            return result
+        high = low
+    return result
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_adaptive_voxel_filter_matches_oracle(seed):
+    """Clouds of every kind the bisection meets: enough points at the coarsest cell, a bisection
+    that ends between two cells, and one that never reaches ``min_points`` (all points in a few cm)."""
+    rng = np.random.default_rng(seed)
+    clouds = [rng.uniform(-30, 30, (300, 2)),
+              np.c_[np.linspace(0.013, 19.987, 1500), np.full(1500, 3.01)] + rng.normal(0, 0.01, (1500, 2)),
+              rng.normal(0, 0.002, (150, 2)),
+              np.vstack([rng.normal(0, 3.0, (120, 2)), rng.normal(5, 0.05, (200, 2))])]
+    for pts in clouds:
+        for min_points, max_length in ((100, 0.9), (50, 0.5), (140, 2.0)):
+            np.testing.assert_array_equal(adaptive_voxel_filter(pts, min_points, max_length),
+                                          adaptive_voxel_oracle(pts, min_points, max_length))

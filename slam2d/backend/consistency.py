@@ -77,13 +77,55 @@ def pair_tests(rel: np.ndarray, la: np.ndarray, lj: np.ndarray, pa: np.ndarray, 
     none = np.zeros(0, dtype=np.int64)
     if n < 2:
         return PairTests(n, none, none, np.zeros(0, bool))
-    i, k = candidate_pairs(pa, p.max_chain)
+    i, k, ok = pair_tests_of(*candidate_pairs(pa, p.max_chain), rel, la, lj, pa, pj, p)
+    return PairTests(n, np.concatenate([i, k]), np.concatenate([k, i]), np.concatenate([ok, ok]))
+
+
+def pair_tests_of(i, k, rel, la, lj, pa, pj, p: ConsistencyParams):
+    """The candidate pairs (``i``, ``k``) whose chain is short enough, and whether each cycle closed."""
     chain = np.abs(pa[i] - pa[k]) + np.abs(pj[i] - pj[k])
     tested = chain <= p.max_chain
     i, k, chain = i[tested], k[tested], chain[tested]
     e = compose(compose(compose(rel[i], between(lj[i], lj[k])), inverse(rel[k])), between(la[k], la[i]))
     ok = (np.hypot(e[:, 0], e[:, 1]) <= p.tol_t + p.drift_t * chain) & (np.abs(e[:, 2]) <= p.tol_r + p.drift_r * chain)
-    return PairTests(n, np.concatenate([i, k]), np.concatenate([k, i]), np.concatenate([ok, ok]))
+    return i, k, ok
+
+
+class PairCache:
+    """``pair_tests`` over a growing set of loops, each pair tested once: a pair's test depends only on
+    its two loops (their relative poses, local poses and paths never change), so a call tests only the
+    pairs that involve loops it has not seen and takes the others from earlier calls. Loops are known
+    by ids that grow with every loop added; a loop no longer passed (removed) drops out of the result."""
+
+    def __init__(self, p: ConsistencyParams):
+        self.p = p
+        self.seen = -1  # the largest id tested so far
+        self.a = np.zeros(0, dtype=np.int64)  # tested pairs (ids), a < b
+        self.b = np.zeros(0, dtype=np.int64)
+        self.ok = np.zeros(0, dtype=bool)
+
+    def tests(self, ids: np.ndarray, rel, la, lj, pa, pj) -> PairTests:
+        """``pair_tests`` of the loops ``ids`` (increasing in the order they were added; arrays as there)."""
+        ids = np.asarray(ids, dtype=np.int64)
+        n = len(ids)
+        none = np.zeros(0, dtype=np.int64)
+        if n < 2:
+            return PairTests(n, none, none, np.zeros(0, bool))
+        if ids[-1] > self.seen:
+            i, k = candidate_pairs(pa, self.p.max_chain)
+            fresh = np.maximum(ids[i], ids[k]) > self.seen
+            i, k = i[fresh], k[fresh]
+            t = pair_tests_of(i, k, rel, la, lj, pa, pj, self.p)
+            self.a = np.concatenate([self.a, ids[t[0]]])
+            self.b = np.concatenate([self.b, ids[t[1]]])
+            self.ok = np.concatenate([self.ok, t[2]])
+            self.seen = int(ids[-1])
+        index = np.full(self.seen + 1, -1, dtype=np.int64)
+        index[ids] = np.arange(n)
+        i, k = index[self.a], index[self.b]
+        live = (i >= 0) & (k >= 0)
+        i, k, ok = i[live], k[live], self.ok[live]
+        return PairTests(n, np.concatenate([i, k]), np.concatenate([k, i]), np.concatenate([ok, ok]))
 
 
 def inconsistent(t: PairTests, scores: np.ndarray, min_support: int = 0) -> list[tuple[int, str]]:
@@ -114,4 +156,4 @@ def inconsistent(t: PairTests, scores: np.ndarray, min_support: int = 0) -> list
     return removed
 
 
-__all__ = ["ConsistencyParams", "PairTests", "candidate_pairs", "pair_tests", "inconsistent"]
+__all__ = ["ConsistencyParams", "PairCache", "PairTests", "candidate_pairs", "pair_tests", "inconsistent"]

@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 
-from slam2d.backend.consistency import ConsistencyParams, inconsistent, pair_tests
+from slam2d.backend.consistency import ConsistencyParams, PairCache, inconsistent
 from slam2d.backend.drift import DriftBound
 from slam2d.backend.loop_closure import StackCache, SubmapMatcher, loop_points
 from slam2d.backend.wide_search import coarse_grid, coarse_match, frame_offset, submap_content
@@ -76,6 +76,10 @@ class GlobalSlam:
         self.consistency_removed = 0
         self.gnc_removed = 0
         self.drift = DriftBound(lc.consistency_drift, math.radians(lc.consistency_drift_deg))
+        # loop pairs tested for consistency, each once (``consistency.PairCache``)
+        self._pairs = PairCache(ConsistencyParams(lc.consistency_max_chain, lc.consistency_translation,
+                                                  lc.consistency_drift, math.radians(lc.consistency_rotation_deg),
+                                                  math.radians(lc.consistency_drift_deg), lc.consistency_min_support))
         rt = cfg.real_time_matcher
         self.unmatched_cov = unmatched_covariance(rt.linear_search_window, math.radians(rt.angular_search_window_deg))
 
@@ -384,17 +388,15 @@ class GlobalSlam:
         loops = list(self.graph.loops)
         if len(loops) < 2 and self.lc.consistency_min_support == 0:
             return
-        lc = self.lc
-        p = ConsistencyParams(lc.consistency_max_chain, lc.consistency_translation, lc.consistency_drift,
-                              math.radians(lc.consistency_rotation_deg), math.radians(lc.consistency_drift_deg),
-                              lc.consistency_min_support)
+        p = self._pairs.p
         rel = np.array([f.relative for f in loops]).reshape(-1, 3)
         la = np.array([self.nodes[f.anchor]["local"] for f in loops]).reshape(-1, 3)
         lj = np.array([self.nodes[f.node]["local"] for f in loops]).reshape(-1, 3)
         pa = np.array([self.nodes[f.anchor]["path"] for f in loops])
         pj = np.array([self.nodes[f.node]["path"] for f in loops])
         scores = np.array([f.record.get("score") or 0.0 for f in loops])
-        for i, reason in inconsistent(pair_tests(rel, la, lj, pa, pj, p), scores, p.min_support):
+        ids = np.array([f.index for f in loops], dtype=np.int64)
+        for i, reason in inconsistent(self._pairs.tests(ids, rel, la, lj, pa, pj), scores, p.min_support):
             self.graph.remove_loop(loops[i], reason)
             self.consistency_removed += 1
 

@@ -167,21 +167,21 @@ def _covariance(scores, params: SearchParameters, n_points: int, prior: np.ndarr
     return cov
 
 
+#: the 3 × 3 × 3 neighbourhood's (angle, y, x) index offsets, angle outermost
+_NEIGHBOURHOOD = tuple(g.ravel() for g in np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij"))
+
+
 def _laplace(scores, offs, angles, n_points, prior) -> np.ndarray:
     """Inverse curvature of the log-likelihood N·s at the best lattice pose: a quadratic fitted to
     the 3 × 3 × 3 neighbourhood (moved inside the window at its edges). Directions with less
     curvature than the prior's information — flat ones, like a corridor's axis — get the prior."""
     a, iy, ix = np.unravel_index(int(np.argmax(scores)), scores.shape)
     idx = [int(np.clip(v, 1, n - 2)) for v, n in zip((a, iy, ix), scores.shape)]
-    rows, vals = [], []
-    for da in (-1, 0, 1):
-        for dy in (-1, 0, 1):
-            for dx in (-1, 0, 1):
-                ka, ky, kx = idx[0] + da, idx[1] + dy, idx[2] + dx
-                x, y, t = offs[kx], offs[ky], angles[ka]
-                rows.append([1.0, x, y, t, 0.5 * x * x, 0.5 * y * y, 0.5 * t * t, x * y, x * t, y * t])
-                vals.append(n_points * float(scores[ka, ky, kx]))
-    c = np.linalg.lstsq(np.array(rows), np.array(vals), rcond=None)[0]
+    ka, ky, kx = idx[0] + _NEIGHBOURHOOD[0], idx[1] + _NEIGHBOURHOOD[1], idx[2] + _NEIGHBOURHOOD[2]
+    x, y, t = offs[kx], offs[ky], angles[ka]
+    rows = np.stack([np.ones(27), x, y, t, 0.5 * x * x, 0.5 * y * y, 0.5 * t * t, x * y, x * t, y * t], axis=1)
+    vals = n_points * scores[ka, ky, kx].astype(np.float64)
+    c = np.linalg.lstsq(rows, vals, rcond=None)[0]
     info = -np.array([[c[4], c[7], c[8]], [c[7], c[5], c[9]], [c[8], c[9], c[6]]])
     # in units of the prior's standard deviations, information below 1 means "no better than the prior"
     sp = np.sqrt(np.diag(prior))
