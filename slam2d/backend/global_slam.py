@@ -56,6 +56,7 @@ class GlobalSlam:
         self.min_scores: dict[int, float] = {}  # per finished submap: the score a loop match must reach
         self.stacks = StackCache(STACK_CACHE_BYTES)
         self.coarse = {}  # per finished submap: its coarse grid for the wide search, made on first use
+        self._centres: dict[int, np.ndarray] = {}  # per finished submap: ``_centre_from_anchor``
         self.wide_searches = 0
         self.wide_accepted = 0
         self.sampled: list[int] = []  # nodes matched against finished submaps (and new submaps against them)
@@ -163,7 +164,7 @@ class GlobalSlam:
         # earlier nodes near the new submap (sampled), excluding those inside it
         inside = set(submap.node_indices)
         first = min(inside, default=0)
-        center = compose(self.global_submap(submap.index), between(submap.local_pose, np.r_[self.matchers[submap.index].center_local, 0.0]))
+        center = compose(self.global_submap(submap.index), self._centre_from_anchor(submap.index))
         cands = []
         for j in self.sampled:
             if j in inside or j >= first:
@@ -184,12 +185,20 @@ class GlobalSlam:
         for k, m in self.matchers.items():
             if k > newest - self.lc.exclude_recent_submaps:
                 continue
-            center = compose(self.global_submap(k), between(m.submap.local_pose, np.r_[m.center_local, 0.0]))
+            center = compose(self.global_submap(k), self._centre_from_anchor(k))
             d = np.hypot(*(node_g[:2] - center[:2]))
             if d < self.lc.max_constraint_distance:
                 cands.append((d, k))
         for _, k in sorted(cands)[: self.lc.max_submaps_per_node]:
             self._search(k, j)
+
+    def _centre_from_anchor(self, k) -> np.ndarray:
+        """Submap ``k``'s content centre seen from its first node (fixed: both are in its grid frame)."""
+        c = self._centres.get(k)
+        if c is None:
+            m = self.matchers[k]
+            c = self._centres[k] = between(m.submap.local_pose, np.r_[m.center_local, 0.0])
+        return c
 
     def _search(self, k, j, initial=None, defer: bool = False, window=None):
         """Match node ``j`` against submap ``k`` around ``initial`` (its pose in the submap's grid frame;
