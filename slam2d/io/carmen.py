@@ -28,8 +28,8 @@ from __future__ import annotations
 import logging
 import math
 import pickle
-from array import array
 import tempfile
+from array import array
 from dataclasses import dataclass, field
 from pathlib import Path
 
