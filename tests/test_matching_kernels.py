@@ -339,3 +339,39 @@ def test_quantized_branch_and_bound_bounds_the_float_score_from_above():
     q = quant._match(grid, pred, pts, 0.0, 0.3, 0.1)
     assert exact.score - 1 / 255.0 < q.score <= exact.score + 1e-6
     assert quant._match(grid, pred, pts, exact.score - 1e-4, 0.3, 0.1) is not None
+
+
+def _separated_margin_oracle(scores, lin, ang):
+    """The separated margin with scipy: local maxima (≥ their 3 × 3 × 3 neighbourhood, edges
+    replicated), positive, outside the box around the best."""
+    from scipy.ndimage import maximum_filter
+
+    a, iy, ix = np.unravel_index(int(np.argmax(scores)), scores.shape)
+    best = float(scores[a, iy, ix])
+    peaks = (scores >= maximum_filter(scores, size=3, mode="nearest")) & (scores > 0)
+    peaks[max(a - ang, 0):a + ang + 1, max(iy - lin, 0):iy + lin + 1, max(ix - lin, 0):ix + lin + 1] = False
+    return best if not peaks.any() else best - float(scores[peaks].max())
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_separated_margin_matches_oracle(seed):
+    """Random cubes (float32 and float64), plateaus of equal values (ties count as peaks), zero and
+    negative regions (never peaks), and cubes whose only peak is the best one."""
+    from slam2d.backend.loop_closure import separated_margin
+
+    rng = np.random.default_rng(seed)
+    for trial in range(40):
+        shape = tuple(int(v) for v in rng.integers(1, 12, 3))
+        dtype = np.float32 if trial % 2 else np.float64
+        s = rng.random(shape).astype(dtype)
+        if trial % 5 == 1:
+            s = np.round(s * 4).astype(dtype) / 4  # plateaus
+        if trial % 5 == 2:
+            s[s < 0.5] = 0.0
+        if trial % 5 == 3:
+            s -= 0.6
+        if trial % 5 == 4:
+            s = np.zeros(shape, dtype)
+            s[tuple(int(rng.integers(0, n)) for n in shape)] = 1.0  # a single peak
+        lin, ang = int(rng.integers(0, 4)), int(rng.integers(0, 4))
+        assert separated_margin(s, lin, ang) == _separated_margin_oracle(s, lin, ang), (seed, trial)

@@ -25,7 +25,7 @@ values); scores are reported in [0, 1].
 """
 from __future__ import annotations
 
-
+import math
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -34,6 +34,7 @@ import numpy as np
 
 from slam2d.geometry import between
 from slam2d.grid.probability_grid import dequantize, quantize
+from slam2d.matching import _kernels
 from slam2d.matching.real_time import _covariance, unmatched_covariance
 from slam2d.matching.refine import refine
 from slam2d.matching.search import MatchGrid, PrecomputationStack, SearchParameters, branch_and_bound, exhaustive
@@ -181,15 +182,10 @@ class SubmapMatcher:
 def separated_margin(scores: np.ndarray, lin: int, ang: int) -> float:
     """Best score minus the best local maximum (3 × 3 × 3) farther than ``lin`` cells or ``ang``
     angular steps from the best; the best score itself when there is none."""
-    from scipy.ndimage import maximum_filter
-
     a, iy, ix = np.unravel_index(int(np.argmax(scores)), scores.shape)
     best = float(scores[a, iy, ix])
-    peaks = (scores >= maximum_filter(scores, size=3, mode="nearest")) & (scores > 0)
-    peaks[max(a - ang, 0):a + ang + 1, max(iy - lin, 0):iy + lin + 1, max(ix - lin, 0):ix + lin + 1] = False
-    if not peaks.any():
-        return best
-    return best - float(scores[peaks].max())
+    other = float(_kernels.best_separated_peak(scores, int(a), int(iy), int(ix), int(lin), int(ang)))
+    return best if other == -math.inf else best - other
 
 
 def loop_points(hits: np.ndarray, voxel: float, min_points: int = 0, max_length: float = 0.0) -> np.ndarray:
