@@ -74,10 +74,16 @@ def pair_tests(rel: np.ndarray, la: np.ndarray, lj: np.ndarray, pa: np.ndarray, 
     ``rel`` (L, 3) loop relative poses (node in anchor frame); ``la``/``lj`` (L, 3) local SLAM poses of
     the anchors / nodes; ``pa``/``pj`` (L,) their path length along the local trajectory [m]."""
     n = len(rel)
-    none = np.zeros(0, dtype=np.int64)
     if n < 2:
+        return _both_ways(n)
+    return _both_ways(n, *pair_tests_of(*candidate_pairs(pa, p.max_chain), rel, la, lj, pa, pj, p))
+
+
+def _both_ways(n, i=None, k=None, ok=None) -> PairTests:
+    """``PairTests`` of ``n`` loops from pairs (i, k) listed once (none: no pair)."""
+    if i is None:
+        none = np.zeros(0, dtype=np.int64)
         return PairTests(n, none, none, np.zeros(0, bool))
-    i, k, ok = pair_tests_of(*candidate_pairs(pa, p.max_chain), rel, la, lj, pa, pj, p)
     return PairTests(n, np.concatenate([i, k]), np.concatenate([k, i]), np.concatenate([ok, ok]))
 
 
@@ -108,9 +114,8 @@ class PairCache:
         """``pair_tests`` of the loops ``ids`` (increasing in the order they were added; arrays as there)."""
         ids = np.asarray(ids, dtype=np.int64)
         n = len(ids)
-        none = np.zeros(0, dtype=np.int64)
         if n < 2:
-            return PairTests(n, none, none, np.zeros(0, bool))
+            return _both_ways(n)
         if ids[-1] > self.seen:
             i, k = candidate_pairs(pa, self.p.max_chain)
             fresh = np.maximum(ids[i], ids[k]) > self.seen
@@ -124,8 +129,7 @@ class PairCache:
         index[ids] = np.arange(n)
         i, k = index[self.a], index[self.b]
         live = (i >= 0) & (k >= 0)
-        i, k, ok = i[live], k[live], self.ok[live]
-        return PairTests(n, np.concatenate([i, k]), np.concatenate([k, i]), np.concatenate([ok, ok]))
+        return _both_ways(n, i[live], k[live], self.ok[live])
 
 
 def inconsistent(t: PairTests, scores: np.ndarray, min_support: int = 0) -> list[tuple[int, str]]:

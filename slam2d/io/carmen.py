@@ -135,9 +135,12 @@ class _RecordStore:
             return
         self._write(lineno, p)
 
-    def _memory_records(self):
+    def _memory_records(self, hand_on: bool = False):
+        """The in-memory records in order; ``hand_on``: each block leaves the store as it is reached."""
         for b in range(len(self.blocks)):
             block = self.blocks[b]
+            if hand_on:
+                self.blocks[b] = None  # its memory serves the run once passed
             for i in range(len(block)):
                 yield block.record(i)
 
@@ -161,10 +164,7 @@ class _RecordStore:
     def __iter__(self):
         self.consumed = True  # a pass hands each in-memory block on once (see CarmenLog._laser_records)
         if self.file is None:
-            for b in range(len(self.blocks)):
-                block, self.blocks[b] = self.blocks[b], None  # handed on: its memory serves the run once passed
-                for i in range(len(block)):
-                    yield block.record(i)
+            yield from self._memory_records(hand_on=True)
             return
         self.file.seek(0)
         load = pickle.Unpickler(self.file)
