@@ -375,3 +375,59 @@ def test_separated_margin_matches_oracle(seed):
             s[tuple(int(rng.integers(0, n)) for n in shape)] = 1.0  # a single peak
         lin, ang = int(rng.integers(0, 4)), int(rng.integers(0, 4))
         assert separated_margin(s, lin, ang) == _separated_margin_oracle(s, lin, ang), (seed, trial)
+
+
+def laplace_cover_oracle(scores, offs, angles, n_points, prior, cov):
+    """The curvature cover in plain numpy: a least-squares quadratic through the 3 × 3 × 3
+    neighbourhood of the best lattice pose (``np.linalg.lstsq`` on the absolute offsets), its
+    information floored at the prior's, then the smallest covariance covering both."""
+    a, iy, ix = np.unravel_index(int(np.argmax(scores)), scores.shape)
+    idx = [int(np.clip(v, 1, n - 2)) for v, n in zip((a, iy, ix), scores.shape)]
+    g = np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij")
+    ka, ky, kx = (i + d.ravel() for i, d in zip(idx, g))
+    x, y, t = offs[kx], offs[ky], angles[ka]
+    rows = np.stack([np.ones(27), x, y, t, 0.5 * x * x, 0.5 * y * y, 0.5 * t * t, x * y, x * t, y * t], axis=1)
+    c = np.linalg.lstsq(rows, n_points * scores[ka, ky, kx].astype(np.float64), rcond=None)[0]
+    info = -np.array([[c[4], c[7], c[8]], [c[7], c[5], c[9]], [c[8], c[9], c[6]]])
+    sp = np.sqrt(np.diag(prior))
+    lam, vec = np.linalg.eigh(info * np.outer(sp, sp))
+    lap = (vec / np.maximum(lam, 1.0)) @ vec.T * np.outer(sp, sp)
+    la, va = np.linalg.eigh(0.5 * (cov + cov.T))
+    half = va * np.sqrt(np.maximum(la, 1e-300))
+    inv_half = np.linalg.inv(half)
+    mu, wv = np.linalg.eigh(inv_half @ lap @ inv_half.T)
+    out = half @ (wv * np.maximum(mu, 1.0)) @ wv.T @ half.T
+    return 0.5 * (out + out.T)
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_laplace_cover_matches_oracle(seed):
+    """Peaks inside and on every face of the volume (the neighbourhood moved inside), sharp and
+    flat ones (information above and below the prior's), windows of 3 cells and more."""
+    rng = np.random.default_rng(100 + seed)
+    na, w = int(rng.integers(3, 12)), int(rng.integers(1, 6))
+    res, step = float(rng.choice([0.02, 0.05, 0.1])), float(rng.uniform(0.002, 0.03))
+    offs = np.arange(-w, w + 1) * res
+    angles = step * np.arange(-(na // 2), na - na // 2, dtype=np.float64)
+    peak = np.array([rng.uniform(-1, na), rng.uniform(-1, 2 * w + 1), rng.uniform(-1, 2 * w + 1)])
+    curv = rng.uniform(0.001, 0.2, 3) if seed % 3 else np.array([0.2, 1e-5, 0.05])  # seed % 3 == 0: a flat axis
+    ga, gy, gx = np.meshgrid(np.arange(na), np.arange(2 * w + 1), np.arange(2 * w + 1), indexing="ij")
+    scores = (0.9 - curv[0] * (ga - peak[0]) ** 2 - curv[1] * (gy - peak[1]) ** 2 - curv[2] * (gx - peak[2]) ** 2
+              + 0.3 * curv[1] * (gx - peak[2]) * (gy - peak[1]) + rng.normal(0, 0.002, ga.shape)).astype(np.float32)
+    n_points = float(rng.integers(20, 400))
+    prior = np.diag([0.3 ** 2, 0.3 ** 2, math.radians(20) ** 2])
+    cov = np.empty((3, 3))
+    _kernels.score_covariance(scores, offs, angles, n_points, cov)
+    cov[np.diag_indices(3)] += [res * res / 12, res * res / 12, step * step / 12]
+    want = laplace_cover_oracle(scores, offs, angles, n_points, prior, cov)
+    got = cov.copy()
+    _kernels.laplace_cover(scores, n_points, res, step, np.sqrt(np.diag(prior)), got)
+    np.testing.assert_allclose(got, want, rtol=1e-7, atol=1e-14 * np.abs(want).max())
+    assert np.all(np.linalg.eigvalsh(got) >= np.linalg.eigvalsh(cov).min() * (1 - 1e-9))
+
+
+def test_laplace_cover_leaves_thin_volumes_alone():
+    cov = np.diag([1e-4, 1e-4, 1e-5])
+    got = cov.copy()
+    _kernels.laplace_cover(np.ones((2, 5, 5), np.float32), 50.0, 0.05, 0.01, np.array([0.3, 0.3, 0.3]), got)
+    np.testing.assert_array_equal(got, cov)

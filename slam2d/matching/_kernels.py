@@ -477,3 +477,95 @@ def best_separated_peak(scores, a, iy, ix, lin, ang):
                 if peak:
                     best = v
     return best
+
+
+@njit(cache=True, nogil=True)
+def laplace_cover(scores, n_points, res, angular_step, prior_sigmas, cov):
+    """Raise ``cov`` (3×3, x/y/θ, in place) to cover the curvature (Laplace) covariance of the
+    log-likelihood N·s at the best lattice pose of ``scores[angle, y, x]`` (lattice steps ``res``,
+    ``res``, ``angular_step``): ``real_time._covariance``'s second half, whose numpy oracle (a
+    least-squares quadratic through the 3 × 3 × 3 neighbourhood, then two eigen-decompositions) is
+    in the tests.
+
+    The neighbourhood is moved inside the volume at its edges. On that 3-level factorial design
+    the least-squares quadratic has closed-form curvatures: the mean second difference along
+    each axis, and Σ f·i·j / 12 for each cross term. Directions whose information (in units of
+    the prior's sigmas) is below 1 get the prior's variance; then ``cov`` becomes the smallest
+    A^½ W max(M, 1) Wᵀ A^½ that is ⪰ A = cov and ⪰ the Laplace covariance (M, W: its
+    eigen-decomposition whitened by A). Volumes thinner than 3 along an axis are left as they are.
+    """
+    na, ny, nx = scores.shape
+    if na < 3 or ny < 3 or nx < 3:
+        return
+    best = -np.inf
+    a0 = 0
+    y0 = 0
+    x0 = 0
+    for a in range(na):
+        for iy in range(ny):
+            for ix in range(nx):
+                if scores[a, iy, ix] > best:
+                    best = scores[a, iy, ix]
+                    a0 = a
+                    y0 = iy
+                    x0 = ix
+    ca = min(max(a0, 1), na - 2)
+    cy = min(max(y0, 1), ny - 2)
+    cx = min(max(x0, 1), nx - 2)
+    sa = np.zeros(3)
+    sy = np.zeros(3)
+    sx = np.zeros(3)
+    sxy = 0.0
+    sxt = 0.0
+    syt = 0.0
+    for da in range(-1, 2):
+        for dy in range(-1, 2):
+            for dx in range(-1, 2):
+                f = n_points * float(scores[ca + da, cy + dy, cx + dx])
+                sa[da + 1] += f
+                sy[dy + 1] += f
+                sx[dx + 1] += f
+                sxy += f * dx * dy
+                sxt += f * dx * da
+                syt += f * dy * da
+    info = np.empty((3, 3))
+    info[0, 0] = -(sx[0] + sx[2] - 2.0 * sx[1]) / (9.0 * res * res)
+    info[1, 1] = -(sy[0] + sy[2] - 2.0 * sy[1]) / (9.0 * res * res)
+    info[2, 2] = -(sa[0] + sa[2] - 2.0 * sa[1]) / (9.0 * angular_step * angular_step)
+    info[0, 1] = info[1, 0] = -sxy / (12.0 * res * res)
+    info[0, 2] = info[2, 0] = -sxt / (12.0 * res * angular_step)
+    info[1, 2] = info[2, 1] = -syt / (12.0 * res * angular_step)
+    for i in range(3):
+        for j in range(3):
+            info[i, j] *= prior_sigmas[i] * prior_sigmas[j]
+    lam, vec = np.linalg.eigh(info)
+    lap = np.zeros((3, 3))
+    for k in range(3):
+        inv_l = 1.0 / max(lam[k], 1.0)
+        for i in range(3):
+            for j in range(3):
+                lap[i, j] += vec[i, k] * inv_l * vec[j, k]
+    for i in range(3):
+        for j in range(3):
+            lap[i, j] *= prior_sigmas[i] * prior_sigmas[j]
+    # the cover of cov and lap
+    sym = 0.5 * (cov + cov.T)
+    la, va = np.linalg.eigh(sym)
+    half = np.empty((3, 3))
+    for k in range(3):
+        r = math.sqrt(max(la[k], 1e-300))
+        for i in range(3):
+            half[i, k] = va[i, k] * r
+    inv_half = np.linalg.inv(half)
+    w = inv_half @ lap @ inv_half.T
+    mu, wv = np.linalg.eigh(0.5 * (w + w.T))
+    mid = np.zeros((3, 3))
+    for k in range(3):
+        m = max(mu[k], 1.0)
+        for i in range(3):
+            for j in range(3):
+                mid[i, j] += wv[i, k] * m * wv[j, k]
+    res_cov = half @ mid @ half.T
+    for i in range(3):
+        for j in range(3):
+            cov[i, j] = 0.5 * (res_cov[i, j] + res_cov[j, i])

@@ -153,7 +153,7 @@ def _margin(scores, a, iy, ix, lin=2, ang=2) -> float:
 def _covariance(scores, params: SearchParameters, n_points: int, prior: np.ndarray | None = None) -> np.ndarray:
     """Olson's covariance of the score distribution plus the lattice's own quantization (step²/12);
     with ``prior``, raised to cover the curvature (Laplace) covariance at the peak, which the
-    window cannot truncate (module docstring)."""
+    window cannot truncate (module docstring; ``_kernels.laplace_cover``)."""
     res = params.resolution
     w = params.linear_cells
     offs = np.arange(-w, w + 1) * res
@@ -163,42 +163,9 @@ def _covariance(scores, params: SearchParameters, n_points: int, prior: np.ndarr
     floor = np.array([res * res / 12.0, res * res / 12.0, params.angular_step ** 2 / 12.0])
     cov[np.diag_indices(3)] += floor
     if prior is not None:
-        cov = _cover(cov, _laplace(scores, offs, angles, float(n_points), prior))
+        _kernels.laplace_cover(scores, float(n_points), float(res), float(params.angular_step),
+                               np.sqrt(np.diag(prior)), cov)
     return cov
-
-
-#: the 3 × 3 × 3 neighbourhood's (angle, y, x) index offsets, angle outermost
-_NEIGHBOURHOOD = tuple(g.ravel() for g in np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij"))
-
-
-def _laplace(scores, offs, angles, n_points, prior) -> np.ndarray:
-    """Inverse curvature of the log-likelihood N·s at the best lattice pose: a quadratic fitted to
-    the 3 × 3 × 3 neighbourhood (moved inside the window at its edges). Directions with less
-    curvature than the prior's information — flat ones, like a corridor's axis — get the prior."""
-    a, iy, ix = np.unravel_index(int(np.argmax(scores)), scores.shape)
-    idx = [int(np.clip(v, 1, n - 2)) for v, n in zip((a, iy, ix), scores.shape)]
-    ka, ky, kx = idx[0] + _NEIGHBOURHOOD[0], idx[1] + _NEIGHBOURHOOD[1], idx[2] + _NEIGHBOURHOOD[2]
-    x, y, t = offs[kx], offs[ky], angles[ka]
-    rows = np.stack([np.ones(27), x, y, t, 0.5 * x * x, 0.5 * y * y, 0.5 * t * t, x * y, x * t, y * t], axis=1)
-    vals = n_points * scores[ka, ky, kx].astype(np.float64)
-    c = np.linalg.lstsq(rows, vals, rcond=None)[0]
-    info = -np.array([[c[4], c[7], c[8]], [c[7], c[5], c[9]], [c[8], c[9], c[6]]])
-    # in units of the prior's standard deviations, information below 1 means "no better than the prior"
-    sp = np.sqrt(np.diag(prior))
-    lam, vec = np.linalg.eigh(info * np.outer(sp, sp))
-    cov_z = (vec / np.maximum(lam, 1.0)) @ vec.T
-    return cov_z * np.outer(sp, sp)
-
-
-def _cover(a, b) -> np.ndarray:
-    """The smallest covariance of the form A^½ W max(M, 1) Wᵀ A^½ that is ⪰ A and ⪰ B, where W M Wᵀ
-    is B whitened by A."""
-    la, va = np.linalg.eigh(0.5 * (a + a.T))
-    half = va * np.sqrt(np.maximum(la, 1e-300))
-    inv_half = np.linalg.inv(half)
-    mu, wv = np.linalg.eigh(inv_half @ b @ inv_half.T)
-    out = half @ (wv * np.maximum(mu, 1.0)) @ wv.T @ half.T
-    return 0.5 * (out + out.T)
 
 
 __all__ = ["RealTimeCorrelativeScanMatcher", "MatchResult", "unmatched_covariance"]
