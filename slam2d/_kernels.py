@@ -166,45 +166,67 @@ def finite_max_count(ranges):
 
 
 @njit(cache=True, nogil=True)
-def pick_neighbours(first, indptr, indices, origins, path, same_span, per_pass):
-    """The health report's neighbours: for node ``first + r`` (row r of the CSR lists ``indptr`` /
-    ``indices``, candidates in index order), its ``per_pass`` nearest candidates other than itself
-    whose path distance to it is below ``same_span`` (same pass), then its ``per_pass`` nearest of
-    the others (other passes); nearest first, equal distances in index order. Rows (i, j, 1 if other
-    pass) in that order."""
-    rows = indptr.shape[0] - 1
-    out = np.empty((rows * 2 * per_pass, 3), dtype=np.int64)
+def pick_neighbours(origins, path, radius, same_span, per_pass):
+    """The health report's neighbours: for every node i, its ``per_pass`` nearest other nodes within
+    ``radius`` (inclusive) whose path distance to it is below ``same_span`` (same pass), then its
+    ``per_pass`` nearest of the others within ``radius`` (other passes); nearest first, equal
+    distances in index order. Rows (i, j, 1 if other pass) in that order, i ascending. Candidates
+    come from a hash of square cells of side ``radius`` (the 3 × 3 cells around a node's own), sorted
+    by cell, so no list of every node's neighbours is ever built; the oracle in the tests takes them
+    from scipy's k-d tree."""
+    n = origins.shape[0]
+    out = np.empty((n * 2 * per_pass, 3), dtype=np.int64)
+    if n == 0:
+        return out
+    cx = np.empty(n, dtype=np.int64)
+    cy = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        cx[i] = int(math.floor(origins[i, 0] / radius))
+        cy[i] = int(math.floor(origins[i, 1] / radius))
+    x0, y0 = cx.min() - 1, cy.min() - 1
+    span = cy.max() - y0 + 2  # rows of the key; the 3 × 3 block of any node stays inside
+    keys = (cx - x0) * span + (cy - y0)
+    order = np.argsort(keys, kind="mergesort")
+    sorted_keys = keys[order]
+    r2 = radius * radius
     m = 0
     bd = np.empty((2, per_pass))
     bj = np.empty((2, per_pass), dtype=np.int64)
     cnt = np.zeros(2, dtype=np.int64)
-    for r in range(rows):
-        i = first + r
+    for i in range(n):
         cnt[0] = 0
         cnt[1] = 0
-        for p in range(indptr[r], indptr[r + 1]):
-            j = indices[p]
-            if j == i:
-                continue
-            d = np.hypot(origins[j, 0] - origins[i, 0], origins[j, 1] - origins[i, 1])
-            o = 0 if abs(path[j] - path[i]) < same_span else 1
-            c = cnt[o]
-            if c == per_pass and not d < bd[o, c - 1]:
-                continue
-            k = c if c < per_pass else per_pass - 1  # the slot it takes before shifting
-            while k > 0 and bd[o, k - 1] > d:  # after every equal one: stable
-                if k < per_pass:
-                    bd[o, k] = bd[o, k - 1]
-                    bj[o, k] = bj[o, k - 1]
-                k -= 1
-            bd[o, k] = d
-            bj[o, k] = j
-            if c < per_pass:
-                cnt[o] = c + 1
+        for ddx in range(-1, 2):
+            for ddy in range(-1, 2):
+                k = keys[i] + ddx * span + ddy
+                lo = np.searchsorted(sorted_keys, k, side="left")
+                hi = np.searchsorted(sorted_keys, k, side="right")
+                for p in range(lo, hi):
+                    j = order[p]
+                    if j == i:
+                        continue
+                    dx, dy = origins[j, 0] - origins[i, 0], origins[j, 1] - origins[i, 1]
+                    if dx * dx + dy * dy > r2:
+                        continue
+                    d = np.hypot(dx, dy)
+                    o = 0 if abs(path[j] - path[i]) < same_span else 1
+                    c = cnt[o]
+                    if c == per_pass and not (d < bd[o, c - 1] or (d == bd[o, c - 1] and j < bj[o, c - 1])):
+                        continue
+                    kk = c if c < per_pass else per_pass - 1  # the slot it takes before shifting
+                    while kk > 0 and (bd[o, kk - 1] > d or (bd[o, kk - 1] == d and bj[o, kk - 1] > j)):
+                        if kk < per_pass:
+                            bd[o, kk] = bd[o, kk - 1]
+                            bj[o, kk] = bj[o, kk - 1]
+                        kk -= 1
+                    bd[o, kk] = d
+                    bj[o, kk] = j
+                    if c < per_pass:
+                        cnt[o] = c + 1
         for o in range(2):
-            for k in range(cnt[o]):
+            for kk in range(cnt[o]):
                 out[m, 0] = i
-                out[m, 1] = bj[o, k]
+                out[m, 1] = bj[o, kk]
                 out[m, 2] = o
                 m += 1
     return out[:m]
@@ -246,3 +268,55 @@ def free_space_counts(hits, hit_start, origins, bearings, ranges, beam_start, st
         out[p, 0] = bad
         out[p, 1] = seen
     return out
+
+
+@njit(cache=True, nogil=True)
+def world_beams(poses, origins, hits, hit_start, misses, miss_start):
+    """Every node's rays in the map frame, for the health report's free-space test. Node k, at
+    ``poses[k]``, has its sensor at ``origins[k]`` and its hits and misses at
+    ``hits[hit_start[k]:hit_start[k + 1]]`` and ``misses[miss_start[k]:miss_start[k + 1]]`` (tracking
+    frame). Returns the sensors and hits in the map frame, and per node its beams: bearings sorted
+    (stably) and ranges from the sensor to every ray end (hits, then misses), from
+    ``beam_start[k]``, with the median bearing step (inf for fewer than 3 beams).
+    ``health._node_world`` and ``health._beams`` are its oracle."""
+    n = poses.shape[0]
+    o_w = np.empty((n, 2))
+    h_w = np.empty((hits.shape[0], 2))
+    beam_start = np.zeros(n + 1, dtype=np.int64)
+    for k in range(n):
+        beam_start[k + 1] = beam_start[k] + (hit_start[k + 1] - hit_start[k]) + (miss_start[k + 1] - miss_start[k])
+    bearings = np.empty(beam_start[n])
+    ranges = np.empty(beam_start[n])
+    steps = np.full(n, np.inf)
+    for k in range(n):
+        px, py = poses[k, 0], poses[k, 1]
+        c, s = math.cos(poses[k, 2]), math.sin(poses[k, 2])
+        ox = px + c * origins[k, 0] - s * origins[k, 1]
+        oy = py + s * origins[k, 0] + c * origins[k, 1]
+        o_w[k, 0] = ox
+        o_w[k, 1] = oy
+        h0, h1 = hit_start[k], hit_start[k + 1]
+        m0, m1 = miss_start[k], miss_start[k + 1]
+        m = (h1 - h0) + (m1 - m0)
+        b = np.empty(m)
+        r = np.empty(m)
+        for i in range(m):
+            if i < h1 - h0:
+                x, y = hits[h0 + i, 0], hits[h0 + i, 1]
+            else:
+                x, y = misses[m0 + i - (h1 - h0), 0], misses[m0 + i - (h1 - h0), 1]
+            wx = px + c * x - s * y
+            wy = py + s * x + c * y
+            if i < h1 - h0:
+                h_w[h0 + i, 0] = wx
+                h_w[h0 + i, 1] = wy
+            b[i] = math.atan2(wy - oy, wx - ox)
+            r[i] = math.hypot(wx - ox, wy - oy)
+        order = np.argsort(b, kind="mergesort")
+        s0 = beam_start[k]
+        for i in range(m):
+            bearings[s0 + i] = b[order[i]]
+            ranges[s0 + i] = r[order[i]]
+        if m > 2:
+            steps[k] = np.median(np.diff(bearings[s0:s0 + m]))
+    return o_w, h_w, bearings, ranges, beam_start, steps

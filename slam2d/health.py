@@ -25,11 +25,7 @@ Two kinds of evidence:
 """
 from __future__ import annotations
 
-import itertools
-
 import numpy as np
-
-from slam2d.geometry import transform_points
 
 #: a node disagrees with its neighbours when, on average over them, more than this share of its
 #: hits lie inside their free space
@@ -42,49 +38,8 @@ WARN_UNTRUSTED, BROKEN_UNTRUSTED = 0.01, 0.05
 NEIGHBOUR_RADIUS = 8.0
 #: ... the nearest this many from the same pass (path distance < 2 × the radius) and as many from other passes
 NEIGHBOURS_PER_PASS = 4
-#: nodes whose neighbour lists are asked for at once
-NEIGHBOUR_CHUNK = 256
 #: a hit violates free space when it lies 2 cells + this share of its range in front of the other's return
 VIOLATION_RANGE_SHARE = 0.01
-
-
-def _world(nodes, poses):
-    """Per node: sensor origin (2,), hits (N, 2) and every ray end (hits then misses), in the map frame."""
-    return [_node_world(n, poses[n.scan_index]) for n in nodes]
-
-
-def _node_world(n, q):
-    """One node of ``_world`` at pose ``q``."""
-    o = transform_points(q, np.asarray(n.origin, dtype=np.float64).reshape(1, 2))[0]
-    h = transform_points(q, np.asarray(n.hits, dtype=np.float64).reshape(-1, 2))
-    m = transform_points(q, np.asarray(n.misses, dtype=np.float64).reshape(-1, 2))
-    return o, h, np.concatenate([h, m])
-
-
-def _beams(o, ends):
-    """Bearings (sorted), ranges and the median bearing step of the rays from ``o`` to ``ends``."""
-    d = ends - o
-    b = np.arctan2(d[:, 1], d[:, 0])
-    order = np.argsort(b, kind="stable")
-    b, r = b[order], np.hypot(d[order, 0], d[order, 1])
-    step = float(np.median(np.diff(b))) if len(b) > 2 else np.inf
-    return b, r, step
-
-
-def _violation(hits, o, beams, resolution):
-    """(violating hits, checked hits) of ``hits`` against the beams of a scan taken at ``o``."""
-    b, r, step = beams
-    if len(b) < 3 or len(hits) == 0:
-        return 0, 0
-    d = hits - o
-    qb = np.arctan2(d[:, 1], d[:, 0])
-    qr = np.hypot(d[:, 0], d[:, 1])
-    idx = np.searchsorted(b, qb)
-    lo, hi = (idx - 1) % len(b), idx % len(b)
-    seen = np.remainder(b[hi] - b[lo], 2 * np.pi) <= 3 * step  # inside the other's field of view
-    free = np.minimum(r[lo], r[hi])
-    bad = seen & (qr < free - (2 * resolution + VIOLATION_RANGE_SHARE * qr))
-    return int(bad.sum()), int(seen.sum())
 
 
 def free_space_violation(nodes, poses, resolution: float) -> np.ndarray:
@@ -102,8 +57,6 @@ def free_space_checks(nodes, poses, resolution: float) -> tuple[np.ndarray, np.n
     earlier pass, while its neighbours from the same pass drifted with it and agree; pooling by hits
     gives a pair that sees little of the other (a revisit in the opposite direction with a 180°
     laser) little say."""
-    from scipy.spatial import cKDTree
-
     from slam2d import _kernels
     from slam2d.threads import in_threads
 
@@ -111,38 +64,25 @@ def free_space_checks(nodes, poses, resolution: float) -> tuple[np.ndarray, np.n
     revisit = np.full(len(nodes), np.nan)
     if len(nodes) < 2:
         return out, revisit
-    # node by node, keeping each one's hits and beams but not its ray ends (a dense log's nodes
-    # hold millions of them)
-    origins, hits, beams = [], [], []
-    for n in nodes:
-        o, h, ends = _node_world(n, poses[n.scan_index])
-        origins.append(o)
-        hits.append(h)
-        beams.append(_beams(o, ends))
-    origins = np.array(origins)
+    # every node's sensor, hits and beams in the map frame, from flat float32 copies of the nodes' rays
+    hit_start = np.r_[0, np.cumsum([len(n.hits) for n in nodes])].astype(np.int64)
+    miss_start = np.r_[0, np.cumsum([len(n.misses) for n in nodes])].astype(np.int64)
+    flat = [np.concatenate([np.asarray(getattr(n, k), dtype=np.float32).reshape(-1, 2) for n in nodes])
+            for k in ("hits", "misses")]
+    q = np.array([poses[n.scan_index] for n in nodes], dtype=np.float64).reshape(-1, 3)
+    sensors = np.array([n.origin for n in nodes], dtype=np.float64).reshape(-1, 2)
+    origins, hits, bearings, ranges, beam_start, steps = _kernels.world_beams(q, sensors, flat[0], hit_start, flat[1],
+                                                                              miss_start)
+    del flat
     path = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(origins, axis=0).T))])
     # the neighbours each node is compared with: the nearest of the same pass, then of other passes
-    tree = cKDTree(origins)
-    picks = []
-    for i in range(0, len(origins), NEIGHBOUR_CHUNK):  # in chunks: all lists at once hold millions of ints on a dense log
-        near = tree.query_ball_point(origins[i:i + NEIGHBOUR_CHUNK], NEIGHBOUR_RADIUS, return_sorted=True)
-        indptr = np.concatenate([[0], np.cumsum([len(c) for c in near])]).astype(np.int64)
-        indices = np.fromiter(itertools.chain.from_iterable(near), dtype=np.int64, count=int(indptr[-1]))
-        picks.append(_kernels.pick_neighbours(i, indptr, indices, origins, path, 2 * NEIGHBOUR_RADIUS,
-                                              NEIGHBOURS_PER_PASS))
-    pairs = np.concatenate(picks)
+    pairs = _kernels.pick_neighbours(origins, path, NEIGHBOUR_RADIUS, 2 * NEIGHBOUR_RADIUS, NEIGHBOURS_PER_PASS)
     if not len(pairs):
         return out, revisit
     other_pass = pairs[:, 2] == 1
     pairs = np.ascontiguousarray(pairs[:, :2])
     # both directions of every pair in one kernel call
     both = np.concatenate([pairs, pairs[:, ::-1]])
-    hit_start = np.concatenate([[0], np.cumsum([len(h) for h in hits])]).astype(np.int64)
-    beam_start = np.concatenate([[0], np.cumsum([len(b[0]) for b in beams])]).astype(np.int64)
-    hits = np.concatenate(hits).reshape(-1, 2)  # flat arrays for the kernel; the per-node lists go
-    bearings, ranges = np.concatenate([b[0] for b in beams]), np.concatenate([b[1] for b in beams])
-    steps = np.array([b[2] for b in beams])
-    del beams
     counts = np.zeros((len(both), 2), dtype=np.int64)
 
     def count(lo, hi):  # pair by pair: how the pairs are split between threads changes nothing

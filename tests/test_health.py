@@ -4,8 +4,48 @@ import math
 import numpy as np
 
 from slam2d.config import config_from_dict
-from slam2d.geometry import compose
-from slam2d.health import assess
+from slam2d.geometry import compose, transform_points
+from slam2d.health import VIOLATION_RANGE_SHARE, assess
+
+
+def _world(nodes, poses):
+    """The health report's ray geometry in plain numpy (oracles of ``_kernels.world_beams`` and
+    ``_kernels.free_space_counts``). Per node: sensor origin (2,), hits (N, 2) and every ray end (hits then misses), in the map frame."""
+    return [_node_world(n, poses[n.scan_index]) for n in nodes]
+
+
+def _node_world(n, q):
+    """One node of ``_world`` at pose ``q``."""
+    o = transform_points(q, np.asarray(n.origin, dtype=np.float64).reshape(1, 2))[0]
+    h = transform_points(q, np.asarray(n.hits, dtype=np.float64).reshape(-1, 2))
+    m = transform_points(q, np.asarray(n.misses, dtype=np.float64).reshape(-1, 2))
+    return o, h, np.concatenate([h, m])
+
+
+def _beams(o, ends):
+    """Bearings (sorted), ranges and the median bearing step of the rays from ``o`` to ``ends``."""
+    d = ends - o
+    b = np.arctan2(d[:, 1], d[:, 0])
+    order = np.argsort(b, kind="stable")
+    b, r = b[order], np.hypot(d[order, 0], d[order, 1])
+    step = float(np.median(np.diff(b))) if len(b) > 2 else np.inf
+    return b, r, step
+
+
+def _violation(hits, o, beams, resolution):
+    """(violating hits, checked hits) of ``hits`` against the beams of a scan taken at ``o``."""
+    b, r, step = beams
+    if len(b) < 3 or len(hits) == 0:
+        return 0, 0
+    d = hits - o
+    qb = np.arctan2(d[:, 1], d[:, 0])
+    qr = np.hypot(d[:, 0], d[:, 1])
+    idx = np.searchsorted(b, qb)
+    lo, hi = (idx - 1) % len(b), idx % len(b)
+    seen = np.remainder(b[hi] - b[lo], 2 * np.pi) <= 3 * step  # inside the other's field of view
+    free = np.minimum(r[lo], r[hi])
+    bad = seen & (qr < free - (2 * resolution + VIOLATION_RANGE_SHARE * qr))
+    return int(bad.sum()), int(seen.sum())
 
 
 def _bundled_local_run():
@@ -80,7 +120,7 @@ def _box_scan(pose, half=(5.0, 3.0), person=None, beams=360):
 
 
 def test_free_space_check_ignores_a_person_seen_by_one_scan_and_flags_a_wrong_pose():
-    from slam2d.health import MAX_VIOLATION, _beams, _violation, _world, free_space_violation
+    from slam2d.health import MAX_VIOLATION, free_space_violation
 
     a_pose, b_pose = np.array([-1.0, 0.0, 0.0]), np.array([1.0, 0.5, 0.4])
     a = _box_scan(a_pose)
@@ -102,7 +142,6 @@ def test_free_space_check_ignores_a_person_seen_by_one_scan_and_flags_a_wrong_po
 
 def test_free_space_kernel_matches_the_numpy_oracle():
     from slam2d import _kernels
-    from slam2d.health import VIOLATION_RANGE_SHARE, _beams, _violation, _world
 
     rng = np.random.default_rng(4)
     nodes = []
@@ -126,6 +165,39 @@ def test_free_space_kernel_matches_the_numpy_oracle():
     assert (got[:, 0] > 0).any() and (got[:, 1] > 0).all()
 
 
+def test_world_beams_kernel_matches_the_numpy_oracle():
+    """Sensors, hits, sorted bearings, ranges and median steps of every node at its pose, from the
+    flat float32 rays the report hands the kernel; nodes with no misses, with fewer than 3 beams,
+    and beams at equal bearings (the stable order) included."""
+    from slam2d import _kernels
+
+    rng = np.random.default_rng(11)
+    nodes = []
+    for k in range(7):
+        n = _box_scan((rng.uniform(-3, 3), rng.uniform(-2, 2), rng.uniform(-math.pi, math.pi)),
+                      beams=[360, 2, 90, 1, 200, 45, 120][k], person=(0.5, 0.2, 0.3) if k == 4 else None)
+        n.hits = n.hits[rng.random(len(n.hits)) < 0.8]
+        if k % 2:  # misses: rays with no return, ending farther out
+            n.misses = (n.hits[::3] * np.float32(1.7)).astype(np.float32)
+        if k == 5:  # two rays along one bearing
+            n.hits = np.concatenate([n.hits, n.hits[:3] * np.float32(0.5)])
+        n.scan_index = k
+        nodes.append(n)
+    poses = np.array([n.local_pose for n in nodes]) + rng.normal(0, 0.1, (7, 3))
+    starts = [np.r_[0, np.cumsum([len(getattr(n, a)) for n in nodes])].astype(np.int64) for a in ("hits", "misses")]
+    o, h, b, r, bs, steps = _kernels.world_beams(
+        poses, np.array([n.origin for n in nodes], dtype=np.float64),
+        np.concatenate([n.hits for n in nodes]).astype(np.float32), starts[0],
+        np.concatenate([n.misses for n in nodes]).astype(np.float32), starts[1])
+    for k, (wo, wh, ends) in enumerate(_world(nodes, poses)):
+        wb, wr, wstep = _beams(wo, ends)
+        np.testing.assert_allclose(o[k], wo, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(h[starts[0][k]:starts[0][k + 1]], wh, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(b[bs[k]:bs[k + 1]], wb, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(r[bs[k]:bs[k + 1]], wr, rtol=0, atol=1e-12)
+        assert steps[k] == wstep if not np.isfinite(wstep) else abs(steps[k] - wstep) < 1e-12
+
+
 def _neighbours_oracle(origins, path, radius, per_pass):
     """The health report's neighbour choice in plain numpy (the loop the kernel replaced)."""
     from scipy.spatial import cKDTree
@@ -146,25 +218,23 @@ def _neighbours_oracle(origins, path, radius, per_pass):
 
 def test_neighbour_kernel_matches_the_numpy_oracle():
     """Exactly the oracle's pairs, in its order, on a path that comes back several times (other passes),
-    with nodes on a lattice so that many distances tie, and in chunks as the report calls it."""
-    import itertools
-
-    from scipy.spatial import cKDTree
-
+    with nodes on a lattice so that many distances tie (and some lie exactly on the radius), far from
+    and around the origin (negative cells)."""
     from slam2d._kernels import pick_neighbours
     from slam2d.health import NEIGHBOUR_RADIUS, NEIGHBOURS_PER_PASS
 
     rng = np.random.default_rng(4)
     t = np.linspace(0, 6 * math.pi, 900)
-    origins = np.round(np.c_[20 * np.cos(t) + 0.5 * t, 12 * np.sin(t)] + rng.normal(0, 0.3, (900, 2)), 0)
-    path = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(origins, axis=0).T))])
-    want = _neighbours_oracle(origins, path, NEIGHBOUR_RADIUS, NEIGHBOURS_PER_PASS)
-    tree, got = cKDTree(origins), []
-    for i in range(0, len(origins), 100):
-        near = tree.query_ball_point(origins[i:i + 100], NEIGHBOUR_RADIUS, return_sorted=True)
-        indptr = np.concatenate([[0], np.cumsum([len(c) for c in near])]).astype(np.int64)
-        indices = np.fromiter(itertools.chain.from_iterable(near), dtype=np.int64)
-        got.append(pick_neighbours(i, indptr, indices, origins, path, 2 * NEIGHBOUR_RADIUS, NEIGHBOURS_PER_PASS))
-    got = np.concatenate(got)
-    assert (want[:, 2] == 1).sum() > 500 and len(want) > 3000  # other passes are there
-    np.testing.assert_array_equal(got, want)
+    for shift in (0.0, 1000.0, -37.0):
+        origins = np.round(np.c_[20 * np.cos(t) + 0.5 * t, 12 * np.sin(t)] + rng.normal(0, 0.3, (900, 2)), 0) + shift
+        path = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(origins, axis=0).T))])
+        want = _neighbours_oracle(origins, path, NEIGHBOUR_RADIUS, NEIGHBOURS_PER_PASS)
+        got = pick_neighbours(origins, path, NEIGHBOUR_RADIUS, 2 * NEIGHBOUR_RADIUS, NEIGHBOURS_PER_PASS)
+        assert (want[:, 2] == 1).sum() > 500 and len(want) > 3000  # other passes are there
+        np.testing.assert_array_equal(got, want)
+    # a neighbour exactly on the radius is one (scipy's ball is closed); one just beyond is not
+    origins = np.array([[0.0, 0.0], [NEIGHBOUR_RADIUS, 0.0], [0.0, -NEIGHBOUR_RADIUS - 1e-9]])
+    path = np.array([0.0, 100.0, 200.0])
+    got = pick_neighbours(origins, path, NEIGHBOUR_RADIUS, 2 * NEIGHBOUR_RADIUS, NEIGHBOURS_PER_PASS)
+    np.testing.assert_array_equal(got, _neighbours_oracle(origins, path, NEIGHBOUR_RADIUS, NEIGHBOURS_PER_PASS))
+    assert [tuple(r) for r in got] == [(0, 1, 1), (1, 0, 1)]
