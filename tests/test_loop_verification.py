@@ -3,6 +3,7 @@ import math
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from slam2d.backend.consistency import ConsistencyParams, candidate_pairs, inconsistent, pair_tests
 from slam2d.backend.loop_closure import LoopMatch, SubmapMatcher
@@ -228,3 +229,98 @@ def test_gnc_prune_removes_a_false_loop_and_keeps_the_true_one():
     out = g.gnc_prune()
     assert [f.record for f in out] == [false] and false["reason"] == "GNC outlier"
     assert true["in_final_graph"] and len(g.loops) == 1
+
+
+def _star_graph(seed=3, submaps=8, per=12):
+    """A pose graph shaped as slam2d builds it: node j hangs from the first node (anchor) of each of
+    the one or two overlapping submaps it lies in; local constraints carry drift and noise."""
+    from slam2d.backend.pose_graph import PoseGraph
+
+    rng = np.random.default_rng(seed)
+    n = submaps * per
+    t = np.linspace(0, 1.7 * math.pi, n)
+    gt = np.c_[8 * np.cos(t), 5 * np.sin(t), t + math.pi / 2]
+    local = [gt[0]]
+    for k in range(1, n):
+        local.append(compose(local[-1], between(gt[k - 1], gt[k]) + rng.normal(0, [0.006, 0.006, 0.004])))
+    g = PoseGraph()
+    for k in range(n):
+        g.add_node(k, local[k])
+    anchors = list(range(0, n, per // 2))  # a submap starts every half submap: two overlap
+    for k in range(n):
+        for a in anchors:
+            if a < k < a + per:
+                cov = np.diag([1e-4, 1e-4, 5e-5]) * (k - a)  # the drift's, with room
+                g.add_intra(a, k, between(local[a], local[k]), cov)
+    return g, gt
+
+
+def test_reduced_graph_keeps_the_solution_of_the_nodes_it_keeps():
+    """``PoseGraph._reduced`` eliminates the nodes that only link two submaps' first nodes; the
+    nodes it keeps (first nodes, loop ends, the prior's node) come out of a batch solve where the full
+    graph's solve puts them, and it keeps every loop."""
+    import gtsam
+
+    from slam2d.backend.pose_graph import _key
+
+    g, gt = _star_graph()
+    n = len(gt)
+    loops = [(0, n - 5), (6, n - 20), (13, 50)]
+    for a, j in loops:
+        g.add_loop(a, j, between(gt[a], gt[j]), [0.02, 0.02, 0.005], {"accepted": True, "in_final_graph": True})
+    red, values, slots = g._reduced()
+    kept = {gtsam.Symbol(k).index() for k in values.keys()}
+    assert len(slots) == len(loops) and {f.node for f in slots.values()} <= kept
+    assert {0, 6, 12, 13, 50, n - 5, n - 20} <= kept and len(kept) < n // 3
+    full = gtsam.LevenbergMarquardtOptimizer(g.graph, g.values, gtsam.LevenbergMarquardtParams()).optimize()
+    part = gtsam.LevenbergMarquardtOptimizer(red, values, gtsam.LevenbergMarquardtParams()).optimize()
+    moved = max(math.hypot(full.atPose2(_key("n", j)).x() - g.node_pose(j)[0],
+                           full.atPose2(_key("n", j)).y() - g.node_pose(j)[1]) for j in kept)
+    assert moved > 0.05  # the loops move the kept nodes: the comparison below means something
+    for j in kept:
+        a, b = full.atPose2(_key("n", j)), part.atPose2(_key("n", j))
+        assert math.hypot(a.x() - b.x(), a.y() - b.y()) < 2e-3 and abs(a.theta() - b.theta()) < 2e-4, j
+
+
+def test_gnc_on_the_reduced_graph_removes_the_false_loop_only():
+    g, gt = _star_graph(seed=5)
+    n = len(gt)
+    true = [{"accepted": True, "in_final_graph": True} for _ in range(2)]
+    g.add_loop(0, n - 5, between(gt[0], gt[n - 5]), [0.02, 0.02, 0.005], true[0])
+    g.add_loop(6, n - 20, between(gt[6], gt[n - 20]), [0.02, 0.02, 0.005], true[1])
+    false = {"accepted": True, "in_final_graph": True}
+    g.add_loop(12, 40, between(gt[12], gt[40]) + [1.5, -1.0, 0.4], [0.02, 0.02, 0.005], false)
+    out = g.gnc_prune()
+    assert [f.record for f in out] == [false] and all(r["in_final_graph"] for r in true)
+
+
+@pytest.mark.parametrize("second", ["towards", "away"])
+def test_reduced_constraint_has_the_marginal_of_the_two_it_replaces(second):
+    """Node 1 links 0 and 2 only: eliminated, the composed constraint 0 → 2 gives node 2 the same
+    marginal covariance (and mean) the two constraints through node 1 gave it, whichever way the
+    second one points."""
+    import gtsam
+
+    from slam2d.backend.pose_graph import PoseGraph, _key
+
+    x = [np.array([0.0, 0.0, 0.3]), np.array([1.0, 0.5, 0.9]), np.array([2.0, -0.4, -0.5])]
+    g = PoseGraph()
+    for k, p in enumerate(x):
+        g.add_node(k, p)
+    g.add_intra(0, 1, between(x[0], x[1]), np.array([[1e-3, 2e-4, 1e-4], [2e-4, 3e-3, -2e-4], [1e-4, -2e-4, 2e-3]]))
+    if second == "towards":
+        g.add_intra(2, 1, between(x[2], x[1]), np.diag([2e-3, 1e-3, 4e-3]))
+    else:
+        g.add_intra(1, 2, between(x[1], x[2]), np.diag([2e-3, 1e-3, 4e-3]))
+    g.add_loop(0, 2, between(x[0], x[2]), [0.1, 0.1, 0.1], {})  # keeps node 2
+    red, values, slots = g._reduced()
+    assert values.size() == 2 and red.size() == 3 and len(slots) == 1
+
+    def marginal(graph, vals, skip=()):
+        gg = gtsam.NonlinearFactorGraph()
+        for i in range(graph.size()):
+            if i not in skip:
+                gg.add(graph.at(i))
+        return gtsam.Marginals(gg, vals).marginalCovariance(_key("n", 2))
+
+    np.testing.assert_allclose(marginal(red, values, slots), marginal(g.graph, g.values, {3}), rtol=1e-9, atol=1e-15)

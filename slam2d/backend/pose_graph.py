@@ -160,31 +160,90 @@ class PoseGraph:
     def gnc_prune(self) -> list[LoopFactor]:
         """Graduated non-convexity (Yang et al. 2020; ``gtsam.GncLMOptimizer``, truncated least squares)
         over the loops as plain Gaussians, every other factor a known inlier; loops it weighs below
-        0.5 are removed. Returns them."""
-        g = gtsam.NonlinearFactorGraph()
-        by_index = {f.index: f for f in self.loops}
-        inliers, slots = [], {}
-        for i in range(self.graph.size()):
-            if not self.graph.exists(i):
-                continue
-            f = by_index.get(i)
-            if f is None:
-                inliers.append(g.size())
-                g.add(self.graph.at(i))
-            else:
-                slots[g.size()] = f
-                g.add(gtsam.BetweenFactorPose2(_key("n", f.anchor), _key("n", f.node), _pose(f.relative), f.base))
+        0.5 are removed. Returns them. It runs on ``_reduced``'s graph: the same loops over fewer
+        variables."""
+        g, values, slots = self._reduced()
         if not slots:
             return []
         params = gtsam.GncLMParams()
-        params.setKnownInliers(inliers)
-        opt = gtsam.GncLMOptimizer(g, self.values, params)
+        params.setKnownInliers([k for k in range(g.size()) if k not in slots])
+        opt = gtsam.GncLMOptimizer(g, values, params)
         opt.optimize()
         w = opt.getWeights()
         out = [f for k, f in slots.items() if w[k] < 0.5]
         for f in out:
             self.remove_loop(f, "GNC outlier")
         return out
+
+    def _reduced(self):
+        """The graph with every node that only links two others through local constraints
+        eliminated: its two constraints (a → j, b → j) become one, a → b, whose measurement is their
+        composition and whose covariance is exactly what marginalizing j out of the two gives to
+        first order (Ad_z_b (Σ_a + Σ_b) Ad_z_bᵀ, both in j's frame). Nodes with one local constraint
+        go with it (a leaf changes no other node's solution); a node is only eliminated when both
+        its neighbours stay. In slam2d's graph, where a node hangs from the first nodes of the one or
+        two submaps it lies in, what stays is those first nodes, the loops' ends and the prior's node.
+        Loops go in as plain Gaussians. Returns (graph, values, {graph index: LoopFactor})."""
+        by_index = {f.index: f for f in self.loops}
+        locals_of: dict[int, list[int]] = {}
+        fixed = set()
+        for i in range(self.graph.size()):
+            if not self.graph.exists(i):
+                continue
+            keys = list(self.graph.at(i).keys()) if i not in by_index else []
+            if i in by_index:
+                fixed.update((_key("n", by_index[i].anchor), _key("n", by_index[i].node)))
+            elif len(keys) != 2:
+                fixed.update(keys)
+            else:
+                for k in keys:
+                    locals_of.setdefault(k, []).append(i)
+        candidates = {k for k, fs in locals_of.items() if k not in fixed and len(fs) <= 2}
+
+        def other(i, k):
+            a, b = self.graph.at(i).keys()
+            return b if a == k else a
+
+        gone = set()
+        for k in candidates:
+            ends = [other(i, k) for i in locals_of[k]]
+            if len(set(ends)) == len(ends) and not any(e in candidates for e in ends):
+                gone.add(k)
+        g = gtsam.NonlinearFactorGraph()
+        slots = {}
+        values = gtsam.Values()
+        for k in self.values.keys():
+            if k not in gone:
+                values.insert(k, self.values.atPose2(k))
+        for i in range(self.graph.size()):
+            if not self.graph.exists(i):
+                continue
+            f = by_index.get(i)
+            if f is not None:
+                slots[g.size()] = f
+                g.add(gtsam.BetweenFactorPose2(_key("n", f.anchor), _key("n", f.node), _pose(f.relative), f.base))
+            elif not any(k in gone for k in self.graph.at(i).keys()):
+                g.add(self.graph.at(i))
+        for k in sorted(gone):
+            fs = locals_of[k]
+            if len(fs) < 2:
+                continue
+            (a, za, ca), (b, zb, cb) = (self._towards(i, k) for i in fs)
+            adj = zb.AdjointMap()
+            cov = adj @ (ca + cb) @ adj.T
+            g.add(gtsam.BetweenFactorPose2(a, b, za.compose(zb.inverse()),
+                                           gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov + cov.T))))
+        return g, values, slots
+
+    def _towards(self, i: int, k: int):
+        """Local constraint ``i`` as (other node, measured other⁻¹ ∘ k, covariance in k's frame)."""
+        f = self.graph.at(i)
+        a, b = f.keys()
+        z, cov = f.measured(), f.noiseModel().covariance()
+        if b == k:
+            return a, z, cov
+        adj = z.AdjointMap()  # k⁻¹ ∘ a = z, so a⁻¹ ∘ k = z⁻¹ with the noise carried by Ad_z
+        return b, z.inverse(), adj @ cov @ adj.T
 
     def optimize(self, max_rounds: int = 20, batch: bool = False) -> list[LoopFactor]:
         """Solve; then repeatedly drop the worst loop constraints whose residual stays large and
