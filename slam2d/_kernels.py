@@ -150,19 +150,32 @@ def classify_readings(ranges, no_return_value, valid, no_return):
 
 
 @njit(cache=True, nogil=True)
-def finite_max_count(ranges):
-    """(largest finite reading, how many readings equal it); (−inf, 0) when none is finite."""
+def survey_band(ranges, running_max, share):
+    """One scan of the no-return survey: (the running maximum raised to this scan's largest finite
+    reading, this scan's finite readings at or above ``share`` of that maximum). A scan with no
+    finite reading leaves the maximum as it is and gives none."""
     top = -math.inf
-    count = 0
     for i in range(ranges.shape[0]):
         r = ranges[i]
-        if r == r and r != math.inf and r != -math.inf:
-            if r > top:
-                top = r
-                count = 1
-            elif r == top:
-                count += 1
-    return top, count
+        if r == r and r != math.inf and r != -math.inf and r > top:
+            top = r
+    if top == -math.inf:
+        return running_max, ranges[:0].copy()
+    new_max = max(running_max, float(top))
+    threshold = share * new_max
+    n = 0
+    for i in range(ranges.shape[0]):
+        r = ranges[i]
+        if r >= threshold and r != math.inf:
+            n += 1
+    band = np.empty(n, dtype=ranges.dtype)
+    n = 0
+    for i in range(ranges.shape[0]):
+        r = ranges[i]
+        if r >= threshold and r != math.inf:
+            band[n] = r
+            n += 1
+    return new_max, band
 
 
 @njit(cache=True, nogil=True)

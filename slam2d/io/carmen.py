@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from slam2d._kernels import classify_readings, finite_max_count
+from slam2d._kernels import classify_readings, survey_band
 from slam2d.errors import InputError
 from slam2d.geometry import between
 from slam2d.io._text import iter_lines
@@ -211,12 +211,7 @@ class NoReturnSurvey:
         self._pending_n = 0
 
     def add(self, ranges: np.ndarray):
-        top, count = finite_max_count(ranges)
-        if count == 0:
-            return
-        self.max_reading = max(self.max_reading, float(top))
-        band = ranges[ranges >= 0.5 * SPIKE_BAND * self.max_reading]
-        band = band[np.isfinite(band)]
+        self.max_reading, band = survey_band(ranges, self.max_reading, 0.5 * SPIKE_BAND)
         if band.size:
             self._pending.append(band)
             self._pending_n += band.size
