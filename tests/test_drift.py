@@ -91,3 +91,31 @@ def test_only_loops_of_the_last_update_are_shortcuts_and_later_nodes_extend_the_
     db.update([(0, 4), (3, 5)])
     assert math.isclose(db.between(3, 5)[0], 0.0, abs_tol=1e-9)
     assert math.isclose(db.between(0, 5)[0], 1.0)  # 5 → 3 free, 3 → 4 one metre, 4 → 0 free
+
+
+def test_shortest_distances_kernel_matches_scipy():
+    """The drift bound's Dijkstra against scipy's on random undirected graphs: parallel edges (the
+    lightest counts), zero weights (free loops), vertices nothing reaches."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import dijkstra
+
+    from slam2d.backend._kernels import shortest_distances
+
+    rng = np.random.default_rng(3)
+    for trial in range(40):
+        n = int(rng.integers(1, 60))
+        m = int(rng.integers(0, 3 * n))
+        heads, tails = rng.integers(0, n, m), rng.integers(0, n, m)
+        w = np.where(rng.random(m) < 0.2, 0.0, rng.uniform(0, 5, m))
+        src = int(rng.integers(0, n))
+        got = shortest_distances(n, heads.astype(np.int64), tails.astype(np.int64), w, src)
+        # scipy sums parallel entries and drops zero ones: give it the lightest of each pair, zero as tiny
+        best = {}
+        for a, b, x in zip(heads, tails, w):
+            key = (min(a, b), max(a, b))
+            best[key] = min(best.get(key, np.inf), x)
+        keys = [k for k in best if k[0] != k[1]]
+        g = coo_matrix(([best[k] + 1e-300 for k in keys], ([k[0] for k in keys], [k[1] for k in keys])), shape=(n, n))
+        want = dijkstra(g.tocsr(), directed=False, indices=src)
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-200)
+        assert got[src] == 0.0

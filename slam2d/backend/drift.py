@@ -21,11 +21,8 @@ node: an upper bound of the true graph distance, so windows err on the wide side
 from __future__ import annotations
 
 import numpy as np
-from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import dijkstra
 
-#: added to every edge weight: scipy's sparse graphs drop edges of weight zero
-_EPS = 1e-12
+from slam2d.backend._kernels import shortest_distances
 
 
 class DriftBound:
@@ -61,17 +58,11 @@ class DriftBound:
         ends = np.array([(self.order[a], self.order[j]) for a, j in loops], dtype=np.int64).reshape(-1, 2)
         keys = np.unique(np.concatenate([ends.ravel(), [ref]]))
         k = len(keys)
-        # edges between keys: the straight runs between consecutive ones, and the loops; where a loop
-        # joins two consecutive keys it is the cheaper edge (a sparse matrix would sum the two)
+        # edges between keys: the straight runs between consecutive ones, and the loops (free)
         run_pairs = np.c_[np.arange(k - 1), np.arange(1, k)]
-        loop_pairs = np.sort(np.searchsorted(keys, ends), axis=1)
+        loop_pairs = np.searchsorted(keys, ends)
         is_run = np.r_[np.ones(k - 1, dtype=bool), np.zeros(len(loop_pairs), dtype=bool)]
-        pairs = np.concatenate([run_pairs, loop_pairs])
-        order = np.lexsort((is_run, pairs[:, 1], pairs[:, 0]))
-        pairs, is_run = pairs[order], is_run[order]
-        keep = np.ones(len(pairs), dtype=bool)
-        keep[1:] = np.any(np.diff(pairs, axis=0) != 0, axis=1)
-        pairs, is_run = pairs[keep], is_run[keep]
+        pairs = np.ascontiguousarray(np.concatenate([run_pairs, loop_pairs]), dtype=np.int64)
         # between two consecutive keys the budget is a straight run: a node is reached from the nearer end
         at = np.arange(ref + 1)
         hi = np.clip(np.searchsorted(keys, at, side="left"), 0, k - 1)
@@ -79,9 +70,8 @@ class DriftBound:
         src = int(np.searchsorted(keys, ref))
         dist = np.empty((ref + 1, 2))
         for c in range(2):
-            w = np.where(is_run, b[keys[pairs[:, 1]], c] - b[keys[pairs[:, 0]], c], 0.0) + _EPS
-            g = csr_matrix((w, (pairs[:, 0], pairs[:, 1])), shape=(k, k))
-            dk = dijkstra(g, directed=False, indices=src)
+            w = np.where(is_run, b[keys[pairs[:, 1]], c] - b[keys[pairs[:, 0]], c], 0.0)
+            dk = shortest_distances(k, pairs[:, 0], pairs[:, 1], w, src)
             dist[:, c] = np.minimum(dk[lo] + np.abs(b[at, c] - b[keys[lo], c]),
                                     dk[hi] + np.abs(b[keys[hi], c] - b[at, c]))
         self._ref, self._dist = ref, dist
