@@ -150,6 +150,24 @@ def classify_readings(ranges, no_return_value, valid, no_return):
 
 
 @njit(cache=True, nogil=True)
+def tangent_moments(points, neighbours, min_baseline, max_gap):
+    """(how many points have a tangent, Σ tx², Σ tx·ty, Σ ty²) over the tangents of ``scan_tangents``:
+    the point-to-line information of a scan, summed in beam order."""
+    tangent, have = scan_tangents(points, neighbours, min_baseline, max_gap)
+    n = 0
+    sxx = 0.0
+    sxy = 0.0
+    syy = 0.0
+    for i in range(points.shape[0]):
+        if have[i]:
+            n += 1
+            sxx += tangent[i, 0] * tangent[i, 0]
+            sxy += tangent[i, 0] * tangent[i, 1]
+            syy += tangent[i, 1] * tangent[i, 1]
+    return n, sxx, sxy, syy
+
+
+@njit(cache=True, nogil=True)
 def survey_band(ranges, running_max, share):
     """One scan of the no-return survey: (the running maximum raised to this scan's largest finite
     reading, this scan's finite readings at or above ``share`` of that maximum). A scan with no

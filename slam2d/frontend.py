@@ -25,7 +25,7 @@ from collections import deque
 
 import numpy as np
 
-from slam2d._kernels import scan_tangents
+from slam2d._kernels import tangent_moments
 from slam2d.config import SlamConfig
 from slam2d.geometry import between, compose
 from slam2d.grid.submap import ActiveSubmaps
@@ -97,17 +97,20 @@ def degenerate_direction(points: np.ndarray) -> np.ndarray | None:
     if len(points) < 10:
         return None
     # per point, the nearest neighbours far enough apart (numba kernel; its numpy oracle is in the tests)
-    tangent, have = scan_tangents(np.ascontiguousarray(points, dtype=np.float64), _NEIGHBOURS,
-                                  NORMAL_MIN_BASELINE, NORMAL_NEIGHBOUR_GAP)
-    if have.sum() < 10:
+    n, sxx, sxy, syy = tangent_moments(np.ascontiguousarray(points, dtype=np.float64), _NEIGHBOURS,
+                                       NORMAL_MIN_BASELINE, NORMAL_NEIGHBOUR_GAP)
+    if n < 10:
         return None
-    t = tangent[have]
-    info = np.array([[np.dot(t[:, 1], t[:, 1]), -np.dot(t[:, 0], t[:, 1])],
-                     [-np.dot(t[:, 0], t[:, 1]), np.dot(t[:, 0], t[:, 0])]]) / len(t)
-    w, v = np.linalg.eigh(info)
-    if w[0] >= DEGENERATE_RATIO * w[1]:
+    # the information [[Σ ty², −Σ tx·ty], [−Σ tx·ty, Σ tx²]] / n and its eigen-decomposition in closed form
+    a, b, c = syy / n, -sxy / n, sxx / n
+    mid, half = 0.5 * (a + c), math.hypot(0.5 * (a - c), b)
+    low, high = mid - half, mid + half
+    if low >= DEGENERATE_RATIO * high:
         return None
-    return v[:, 0]
+    # (A − low·I) v = 0: v ∥ (b, low − a) and ∥ (low − c, b); the longer of the two is the stabler
+    v = (b, low - a) if abs(a - low) >= abs(c - low) else (low - c, b)
+    norm = math.hypot(*v)
+    return np.array([v[0] / norm, v[1] / norm]) if norm > 0.0 else None
 
 
 def observed_scores(submap_grid, match_grid, poses, points: np.ndarray) -> list[float] | None:

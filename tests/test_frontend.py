@@ -316,3 +316,39 @@ def test_a_recovered_pose_must_win_where_both_poses_are_observed():
     assert LocalSlam._better_where_observed(sub, mg, peak, wide, pts)  # the other way round it wins
     edge = MatchResult(np.zeros(3), 10 / 30, 1, on_edge=True)         # no peak to compare with: the recovery decides
     assert LocalSlam._better_where_observed(sub, mg, wide, edge, pts)
+
+
+def _degenerate_oracle(points):
+    """``degenerate_direction`` in plain numpy: the tangents' information and ``np.linalg.eigh``."""
+    from slam2d.frontend import DEGENERATE_RATIO, NORMAL_MIN_BASELINE, NORMAL_NEIGHBOUR_GAP, NORMAL_NEIGHBOURS
+
+    if len(points) < 10:
+        return None
+    tangent, have = _tangents_oracle(points, NORMAL_NEIGHBOURS, NORMAL_MIN_BASELINE, NORMAL_NEIGHBOUR_GAP)
+    if have.sum() < 10:
+        return None
+    t = tangent[have]
+    info = np.array([[t[:, 1] @ t[:, 1], -(t[:, 0] @ t[:, 1])], [-(t[:, 0] @ t[:, 1]), t[:, 0] @ t[:, 0]]]) / len(t)
+    w, v = np.linalg.eigh(info)
+    return None if w[0] >= DEGENERATE_RATIO * w[1] else v[:, 0]
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_degenerate_direction_matches_the_numpy_oracle(seed):
+    """Corridors at every heading (the closed-form eigenvector's two branches), rooms, sparse and
+    noisy scans: the same verdict and, where degenerate, the same direction up to its sign."""
+    from slam2d.frontend import degenerate_direction
+
+    rng = np.random.default_rng(50 + seed)
+    a = rng.uniform(-math.pi, math.pi)
+    x = np.linspace(-10, 10, int(rng.integers(20, 400)))
+    walls = np.c_[np.r_[x, x[::-1]], np.r_[np.full(len(x), -1.0), np.full(len(x), 1.0)]]
+    walls[:, 1] += rng.normal(0, [0.001, 0.01, 0.05][seed % 3], len(walls))
+    if seed % 4 == 3:  # an end wall in sight: not degenerate
+        walls = np.r_[walls[:len(x)], np.c_[np.full(60, 10.0), np.linspace(-1, 1, 60)]]
+    rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    for pts in (walls @ rot.T, walls[: 12] @ rot.T, rng.uniform(-5, 5, (50, 2))):
+        got, want = degenerate_direction(pts), _degenerate_oracle(pts)
+        assert (got is None) == (want is None)
+        if want is not None:
+            assert abs(abs(got @ want) - 1.0) < 1e-9 and abs(np.hypot(*got) - 1.0) < 1e-12
