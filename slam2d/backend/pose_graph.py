@@ -21,6 +21,7 @@ import math
 import gtsam
 import numpy as np
 
+from slam2d.geometry import between
 from slam2d.types import LoopFactor
 
 
@@ -36,6 +37,8 @@ def _arr(p: gtsam.Pose2) -> np.ndarray:
     return np.array([p.x(), p.y(), p.theta()])
 
 
+#: loops whose residual, screened in numpy, comes within this share of a limit are measured by gtsam
+RESIDUAL_SCREEN = 0.9
 #: iSAM2 relinearization steps after an update at most (they stop once no variable moved past the threshold)
 ISAM_EXTRA_STEPS = 5
 
@@ -56,6 +59,7 @@ class PoseGraph:
         self._isam_index: dict[int, int] = {}  # graph index -> iSAM2's index of the same factor
         self._removals: list[int] = []     # iSAM2 indices of factors removed since its last update
         self.values = gtsam.Values()
+        self._ids: np.ndarray | None = None  # node ids ascending, while no node is added
         self.huber_scale = huber_scale
         self.max_residual_trans = max_residual_trans
         self.max_residual_rot = max_residual_rot
@@ -90,9 +94,11 @@ class PoseGraph:
         return self.values.exists(_key("n", j))
 
     def all_node_poses(self) -> tuple[np.ndarray, np.ndarray]:
-        """(node ids ascending, (N, 3) poses) of every node, in one call."""
-        ids = np.array([gtsam.Symbol(k).index() for k in self.values.keys()], dtype=np.int64)
-        return ids, np.asarray(gtsam.utilities.extractPose2(self.values), dtype=float).reshape(-1, 3)
+        """(node ids ascending, (N, 3) poses) of every node, in one call (gtsam's values are in key
+        order, which is node id order)."""
+        if self._ids is None or len(self._ids) != self.values.size():
+            self._ids = np.array(sorted(gtsam.Symbol(k).index() for k in self.values.keys()), dtype=np.int64)
+        return self._ids, np.asarray(gtsam.utilities.extractPose2(self.values), dtype=float).reshape(-1, 3)
 
     # ---- factors
     def add_intra(self, anchor: int, j: int, relative, covariance: np.ndarray):
@@ -245,6 +251,28 @@ class PoseGraph:
         adj = z.AdjointMap()  # k⁻¹ ∘ a = z, so a⁻¹ ∘ k = z⁻¹ with the noise carried by Ad_z
         return b, z.inverse(), adj @ cov @ adj.T
 
+    def _excess(self, r) -> float:
+        return max(math.hypot(r[0], r[1]) / self.max_residual_trans, abs(r[2]) / self.max_residual_rot)
+
+    def _offenders(self) -> list[tuple[float, LoopFactor]]:
+        """(excess, loop) of every loop whose residual exceeds the limits (excess: by how many times),
+        in loop order. All loops are screened at once in numpy; those within ``RESIDUAL_SCREEN`` of
+        a limit or over it are measured again by gtsam, so every verdict and excess is gtsam's."""
+        if not self.loops:
+            return []
+        ids, poses = self.all_node_poses()
+        a = poses[np.searchsorted(ids, [f.anchor for f in self.loops])]
+        n = poses[np.searchsorted(ids, [f.node for f in self.loops])]
+        r = between(between(a, n), np.array([f.relative for f in self.loops]).reshape(-1, 3))
+        screen = np.maximum(np.hypot(r[:, 0], r[:, 1]) / self.max_residual_trans, np.abs(r[:, 2]) / self.max_residual_rot)
+        out = []
+        for k in np.flatnonzero(screen > RESIDUAL_SCREEN):
+            f = self.loops[int(k)]
+            excess = self._excess(self.residual(f))
+            if excess > 1.0:
+                out.append((excess, f))
+        return out
+
     def optimize(self, max_rounds: int = 20, batch: bool = False) -> list[LoopFactor]:
         """Solve; then repeatedly drop the worst loop constraints whose residual stays large and
         solve again. Only the worst quarter of the offenders goes per round, so that a few false
@@ -254,12 +282,7 @@ class PoseGraph:
         self._solve(batch)
         dropped = []
         for rnd in range(max_rounds + 1):
-            bad = []
-            for f in self.loops:
-                r = self.residual(f)
-                excess = max(math.hypot(r[0], r[1]) / self.max_residual_trans, abs(r[2]) / self.max_residual_rot)
-                if excess > 1.0:
-                    bad.append((excess, f))
+            bad = self._offenders()
             if not bad:
                 break
             bad.sort(key=lambda b: -b[0])
