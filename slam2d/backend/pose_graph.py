@@ -59,7 +59,8 @@ class PoseGraph:
         self._isam_index: dict[int, int] = {}  # graph index -> iSAM2's index of the same factor
         self._removals: list[int] = []     # iSAM2 indices of factors removed since its last update
         self.values = gtsam.Values()
-        self._ids: np.ndarray | None = None  # node ids ascending, while no node is added
+        self._node_ids: list[int] = []       # every node's id, as added
+        self._ids: np.ndarray | None = None  # the same ascending, while no node is added
         self.huber_scale = huber_scale
         self.max_residual_trans = max_residual_trans
         self.max_residual_rot = max_residual_rot
@@ -73,6 +74,7 @@ class PoseGraph:
     def add_node(self, j: int, pose):
         if not self.values.exists(_key("n", j)):
             self.values.insert(_key("n", j), _pose(pose))
+            self._node_ids.append(int(j))
             if self.incremental:
                 self._new_values.insert(_key("n", j), _pose(pose))
             if not self.has_prior:
@@ -96,8 +98,8 @@ class PoseGraph:
     def all_node_poses(self) -> tuple[np.ndarray, np.ndarray]:
         """(node ids ascending, (N, 3) poses) of every node, in one call (gtsam's values are in key
         order, which is node id order)."""
-        if self._ids is None or len(self._ids) != self.values.size():
-            self._ids = np.array(sorted(gtsam.Symbol(k).index() for k in self.values.keys()), dtype=np.int64)
+        if self._ids is None or len(self._ids) != len(self._node_ids):
+            self._ids = np.array(sorted(self._node_ids), dtype=np.int64)
         return self._ids, np.asarray(gtsam.utilities.extractPose2(self.values), dtype=float).reshape(-1, 3)
 
     # ---- factors
