@@ -57,6 +57,8 @@ class GlobalSlam:
         self.stacks = StackCache(STACK_CACHE_BYTES)
         self.coarse = {}  # per finished submap: its coarse grid for the wide search, made on first use
         self._centres: dict[int, np.ndarray] = {}  # per finished submap: ``_centre_from_anchor``
+        self._centres_at = None                      # ``_submap_centres``'s cache and when it was made
+        self._centres_all = (np.zeros(0, dtype=np.int64), np.zeros((0, 3)))
         self.wide_searches = 0
         self.wide_accepted = 0
         self.sampled: list[int] = []  # nodes matched against finished submaps (and new submaps against them)
@@ -181,16 +183,23 @@ class GlobalSlam:
     def _search_node(self, j):
         node_g = self.global_node(j)
         newest = max(self.matchers, default=-1)
-        cands = []
-        for k, m in self.matchers.items():
-            if k > newest - self.lc.exclude_recent_submaps:
-                continue
-            center = compose(self.global_submap(k), self._centre_from_anchor(k))
-            d = np.hypot(*(node_g[:2] - center[:2]))
-            if d < self.lc.max_constraint_distance:
-                cands.append((d, k))
+        ks, centres = self._submap_centres()
+        d = np.hypot(node_g[0] - centres[:, 0], node_g[1] - centres[:, 1])
+        near = (ks <= newest - self.lc.exclude_recent_submaps) & (d < self.lc.max_constraint_distance)
+        cands = list(zip(d[near].tolist(), ks[near].tolist()))
         for _, k in sorted(cands)[: self.lc.max_submaps_per_node]:
             self._search(k, j)
+
+    def _submap_centres(self) -> tuple[np.ndarray, np.ndarray]:
+        """(ids, (K, 3) global content centres) of the finished submaps, kept until the next
+        optimization or the next finished submap (the estimates change only then)."""
+        key = (self.optimizations, len(self.matchers))
+        if self._centres_at != key:
+            ks = list(self.matchers)
+            c = [compose(self.global_submap(k), self._centre_from_anchor(k)) for k in ks]
+            self._centres_all = (np.array(ks, dtype=np.int64), np.array(c, dtype=float).reshape(-1, 3))
+            self._centres_at = key
+        return self._centres_all
 
     def _centre_from_anchor(self, k) -> np.ndarray:
         """Submap ``k``'s content centre seen from its first node (fixed: both are in its grid frame)."""
