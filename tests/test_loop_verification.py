@@ -324,3 +324,22 @@ def test_reduced_constraint_has_the_marginal_of_the_two_it_replaces(second):
         return gtsam.Marginals(gg, vals).marginalCovariance(_key("n", 2))
 
     np.testing.assert_allclose(marginal(red, values, slots), marginal(g.graph, g.values, {3}), rtol=1e-9, atol=1e-15)
+
+
+def test_fused_constraint_adds_informations_and_weights_the_means():
+    import gtsam
+
+    from slam2d.backend.pose_graph import _fuse
+
+    z = gtsam.Pose2(1.0, 2.0, 0.3)
+    c1, c2 = np.diag([1e-2, 4e-2, 1e-3]), np.diag([3e-2, 1e-2, 1e-3])
+    fz, fc = _fuse([(z, c1), (z, c2)])
+    np.testing.assert_allclose(fc, np.linalg.inv(np.linalg.inv(c1) + np.linalg.inv(c2)), rtol=1e-12)
+    assert fz.equals(z, 1e-12)
+    # two measurements 2 cm apart along the first's x, equal weights: the fused one lies halfway
+    z2 = z.compose(gtsam.Pose2(0.02, 0.0, 0.0))
+    fz, fc = _fuse([(z, c1), (z2, c1)])
+    assert fz.equals(z.compose(gtsam.Pose2(0.01, 0.0, 0.0)), 1e-9)
+    np.testing.assert_allclose(fc, c1 / 2, rtol=1e-12)
+    one = _fuse([(z, c1)])
+    assert one[0] is z and one[1] is c1

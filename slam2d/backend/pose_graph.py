@@ -43,6 +43,24 @@ RESIDUAL_SCREEN = 0.9
 ISAM_EXTRA_STEPS = 5
 
 
+def _fuse(parts) -> tuple[gtsam.Pose2, np.ndarray]:
+    """One constraint for several between the same two nodes (measurement, covariance), to first
+    order: informations added, measurement their information-weighted mean in the tangent space
+    of the first (the parts differ by little: the same two submaps' first nodes through different
+    nodes)."""
+    if len(parts) == 1:
+        return parts[0]
+    z0 = parts[0][0]
+    info = np.zeros((3, 3))
+    rhs = np.zeros(3)
+    for z, cov in parts:
+        lam = np.linalg.inv(cov)
+        info += lam
+        rhs += lam @ np.asarray(gtsam.Pose2.Logmap(z0.between(z)), dtype=float)
+    cov = np.linalg.inv(info)
+    return z0.compose(gtsam.Pose2.Expmap(cov @ rhs)), 0.5 * (cov + cov.T)
+
+
 class PoseGraph:
     def __init__(self, huber_scale: float = 1.0, max_residual_trans: float = 0.3, max_residual_rot: float = 0.05,
                  incremental: bool = False):
@@ -191,7 +209,8 @@ class PoseGraph:
         go with it (a leaf changes no other node's solution); a node is only eliminated when both
         its neighbours stay. In slam2d's graph, where a node hangs from the first nodes of the one or
         two submaps it lies in, what stays is those first nodes, the loops' ends and the prior's node.
-        Loops go in as plain Gaussians. Returns (graph, values, {graph index: LoopFactor})."""
+        The composed constraints between the same two nodes are fused into one (``_fuse``). Loops go
+        in as plain Gaussians. Returns (graph, values, {graph index: LoopFactor})."""
         by_index = {f.index: f for f in self.loops}
         locals_of: dict[int, list[int]] = {}
         fixed = set()
@@ -232,15 +251,20 @@ class PoseGraph:
                 g.add(gtsam.BetweenFactorPose2(_key("n", f.anchor), _key("n", f.node), _pose(f.relative), f.base))
             elif not any(k in gone for k in self.graph.at(i).keys()):
                 g.add(self.graph.at(i))
+        fused: dict[tuple[int, int], list] = {}
         for k in sorted(gone):
             fs = locals_of[k]
             if len(fs) < 2:
                 continue
             (a, za, ca), (b, zb, cb) = (self._towards(i, k) for i in fs)
+            if a > b:
+                (a, za, ca), (b, zb, cb) = (b, zb, cb), (a, za, ca)
             adj = zb.AdjointMap()
             cov = adj @ (ca + cb) @ adj.T
-            g.add(gtsam.BetweenFactorPose2(a, b, za.compose(zb.inverse()),
-                                           gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov + cov.T))))
+            fused.setdefault((a, b), []).append((za.compose(zb.inverse()), 0.5 * (cov + cov.T)))
+        for (a, b), parts in fused.items():
+            z, cov = _fuse(parts)
+            g.add(gtsam.BetweenFactorPose2(a, b, z, gtsam.noiseModel.Gaussian.Covariance(cov)))
         return g, values, slots
 
     def _towards(self, i: int, k: int):
