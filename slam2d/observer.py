@@ -9,6 +9,10 @@ from __future__ import annotations
 class Observer:
     """Every method is optional; the default does nothing."""
 
+    #: whether ``on_optimized`` reads the pose graph's error (``graph.last_error``); computing it
+    #: is a pass over every factor, so global SLAM skips it for observers that do not
+    wants_graph_error = False
+
     def on_start(self, info: dict) -> None: ...
 
     def on_scan(self, scan, result) -> None: ...

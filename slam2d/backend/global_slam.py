@@ -380,7 +380,8 @@ class GlobalSlam:
         t0 = time.perf_counter()
         if self.lc.consistency_check:
             self._check_consistency()
-        dropped = self.graph.optimize(batch=final and self.lc.final_batch)
+        dropped = self.graph.optimize(batch=final and self.lc.final_batch,
+                                      error=final or getattr(self.observer, "wants_graph_error", False))
         self.optimize_seconds += time.perf_counter() - t0
         self.optimizations += 1
         self.loops_at_last_optimize = len(self.graph.loops)

@@ -181,7 +181,7 @@ class PoseGraph:
             if r.getVariablesRelinearized() == 0:
                 break
         self.values = self.isam.calculateEstimate()
-        self.last_error = (math.nan, self.graph.error(self.values))  # the error before: not computed (a full pass)
+        self.last_error = (math.nan, math.nan)  # ``optimize`` computes the error after, when asked
 
     def gnc_prune(self) -> list[LoopFactor]:
         """Graduated non-convexity (Yang et al. 2020; ``gtsam.GncLMOptimizer``, truncated least squares)
@@ -299,12 +299,13 @@ class PoseGraph:
                 out.append((excess, f))
         return out
 
-    def optimize(self, max_rounds: int = 20, batch: bool = False) -> list[LoopFactor]:
+    def optimize(self, max_rounds: int = 20, batch: bool = False, error: bool = True) -> list[LoopFactor]:
         """Solve; then repeatedly drop the worst loop constraints whose residual stays large and
         solve again. Only the worst quarter of the offenders goes per round, so that a few false
         constraints that bend the graph do not take the true ones with them. Returns the dropped.
         ``batch``: Levenberg-Marquardt over the whole graph even when incremental (iSAM2 is not
-        updated afterwards: for the last solve)."""
+        updated afterwards: for the last solve). ``error``: leave the graph's error at the solution
+        in ``last_error`` (else NaN after an iSAM2 solve)."""
         self._solve(batch)
         dropped = []
         for rnd in range(max_rounds + 1):
@@ -318,4 +319,6 @@ class PoseGraph:
                 self.remove_loop(f, "residual after optimization")
             dropped.extend(worst)
             self._solve(batch)
+        if error and math.isnan(self.last_error[1]):  # iSAM2 solves leave it to here: a pass over every factor
+            self.last_error = (self.last_error[0], self.graph.error(self.values))
         return dropped

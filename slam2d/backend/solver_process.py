@@ -121,9 +121,9 @@ class RemotePoseGraph:
             out.append(f)
         return out
 
-    def optimize(self, max_rounds: int = 20, batch: bool = False) -> list[LoopFactor]:
+    def optimize(self, max_rounds: int = 20, batch: bool = False, error: bool = True) -> list[LoopFactor]:
         """``PoseGraph.optimize`` in the child; every node's estimate comes back."""
-        r = self._call("optimize", max_rounds, batch)
+        r = self._call("optimize", max_rounds, batch, error)
         self._poses = {int(j): p for j, p in zip(r["ids"], r["poses"])}
         self.iterations, self.last_error = r["iterations"], r["last_error"]
         return self._dropped(r["dropped"])
@@ -174,7 +174,7 @@ def _serve(recv: Connection, send: Connection):
             if failed is not None:
                 raise failed
             if kind == "optimize":
-                dropped = graph.optimize(msg[1], msg[2])
+                dropped = graph.optimize(*msg[1:])
                 ids, poses = graph.all_node_poses()
                 reply = {"ids": ids, "poses": poses, "iterations": graph.iterations, "last_error": graph.last_error}
             elif kind == "gnc":

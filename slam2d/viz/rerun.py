@@ -107,6 +107,8 @@ def grid_map(grid, transform=None, z: float = Z_SUBMAP, opacity: float = SUBMAP_
 
 
 class RerunObserver(Observer):
+    wants_graph_error = True  # plotted after every optimization
+
     def __init__(self, path: str | None = None, spawn: bool = False, flush_every: int = 200,
                  trajectory_every: int = 50, submap_every: int = 20):
         rr.init("slam2d", spawn=spawn, default_blueprint=blueprint())
