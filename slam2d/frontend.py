@@ -221,13 +221,15 @@ class LocalSlam:
             hyps += [ex.predict(scan.timestamp, None), ex.last_pose]  # constant velocity, no motion
         best = None
         tried = []
-        stack = self.wide_matcher.stack_for(grid)  # built once, searched from every prediction
-        wide = self.wide_matcher
         for h in hyps:
-            if any(math.hypot(h[0] - t[0], h[1] - t[1]) < grid.resolution and abs(math.remainder(h[2] - t[2], 2 * math.pi)) < 1e-3
-                   for t in tried):
-                continue
-            tried.append(h)
+            if not any(math.hypot(h[0] - t[0], h[1] - t[1]) < grid.resolution
+                       and abs(math.remainder(h[2] - t[2], 2 * math.pi)) < 1e-3 for t in tried):
+                tried.append(h)
+        wide = self.wide_matcher
+        reach = float(np.sqrt((points ** 2).sum(axis=1)).max())
+        # built once, searched from every prediction; it pools only the cells those searches can reach
+        stack = wide.stack_for(grid, around=tried, reach=reach)
+        for h in tried:
             m = wide._match(grid, h, points, floor, wide.linear_window, wide.angular_window, stack=stack)
             if m is None:
                 continue
@@ -239,7 +241,7 @@ class LocalSlam:
         if best is None:
             return None
         # the score surface around the recovered peak: margin and covariance, as for a normal match
-        step = angular_step(grid.resolution, float(np.sqrt((points ** 2).sum(axis=1)).max()))
+        step = angular_step(grid.resolution, reach)
         around = self.matcher._match(grid, best.pose, points, 0.0, 2 * grid.resolution, 2 * step)
         around.escalated = True
         around.on_edge = best.on_edge  # on the edge of the recovery window: the true pose may lie beyond

@@ -431,3 +431,40 @@ def test_laplace_cover_leaves_thin_volumes_alone():
     got = cov.copy()
     _kernels.laplace_cover(np.ones((2, 5, 5), np.float32), 50.0, 0.05, 0.01, np.array([0.3, 0.3, 0.3]), got)
     np.testing.assert_array_equal(got, cov)
+
+
+def test_cropped_stack_searches_as_the_whole_grid():
+    """``stack_for(grid, around=poses, reach=r)`` pools only ``search_region``: 400 seeded random
+    cases (float and uint8 stacks, depths 1-5, with the delta penalty, a score floor, one to three
+    start poses inside the grid, across its borders or off it) give the same pose and score, bit
+    for bit, as the stack of the whole grid, from every start pose."""
+    from slam2d.matching.real_time import RealTimeCorrelativeScanMatcher
+    from slam2d.matching.search import search_region
+
+    rng = np.random.default_rng(21)
+    cropped = off_grid = found = 0
+    for case in range(400):
+        rows, cols = (int(v) for v in rng.integers(8, 200, 2))
+        res = float(rng.choice([0.05, 0.1]))
+        values = (rng.random((rows, cols)) ** 2).astype(np.float32)
+        grid = MatchGrid(values, rng.uniform(-3, 3, 2), res, float(rng.choice([0.0, 0.1, 0.5])))
+        m = RealTimeCorrelativeScanMatcher(float(rng.uniform(0.1, 1.0)), float(rng.uniform(0.05, 0.6)),
+                                           int(rng.integers(1, 6)), 0.1, 0.1, quantize=bool(rng.random() < 0.5))
+        pts = rng.normal(0, rng.uniform(0.1, 1.2), (int(rng.integers(3, 40)), 2))
+        reach = float(np.sqrt((pts ** 2).sum(axis=1)).max())
+        lo, hi = grid.origin - 6.0, grid.origin + res * np.array([cols, rows]) + 6.0
+        starts = [np.r_[rng.uniform(lo, hi), rng.uniform(-math.pi, math.pi)] for _ in range(int(rng.integers(1, 4)))]
+        region = search_region(values.shape, grid.origin, res, starts, reach,
+                               int(math.ceil(m.linear_window / res)), m.branch_depth)
+        cropped += region is not None
+        off_grid += region is not None and (region[1] - region[0]) * (region[3] - region[2]) == 1
+        whole, part = m.stack_for(grid), m.stack_for(grid, around=starts, reach=reach)
+        floor = float(rng.choice([0.0, 0.2]))
+        for s in starts:
+            a = m._match(grid, s, pts, floor, m.linear_window, m.angular_window, stack=whole)
+            b = m._match(grid, s, pts, floor, m.linear_window, m.angular_window, stack=part)
+            assert (a is None) == (b is None), (case, a, b)
+            if a is not None:
+                found += 1
+                assert a.score == b.score and np.array_equal(a.pose, b.pose) and a.on_edge == b.on_edge, (case, a, b)
+    assert cropped > 200 and off_grid > 10 and found > 200, (cropped, off_grid, found)

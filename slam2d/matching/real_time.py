@@ -29,13 +29,14 @@ less than pure prediction, nor more than its window and its curvature show.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from slam2d.matching import _kernels
 from slam2d.matching.search import (DeltaPenalty, MatchGrid, PrecomputationStack, SearchParameters, branch_and_bound,
-                                   exhaustive, quantized_up)
+                                    exhaustive, quantized_up, search_region)
 
 
 @dataclass
@@ -103,9 +104,25 @@ class RealTimeCorrelativeScanMatcher:
                 return wide
         return res
 
-    def stack_for(self, grid: MatchGrid) -> PrecomputationStack:
-        """The branch-and-bound precomputation of ``grid``, to share among several searches of one scan."""
-        return PrecomputationStack(quantized_up(grid) if self.quantize else grid, self.branch_depth)
+    def stack_for(self, grid: MatchGrid, around=None, reach: float = 0.0) -> PrecomputationStack:
+        """The branch-and-bound precomputation of ``grid``, to share among several searches of one scan.
+
+        ``around``: the poses the searches (with this matcher's windows) will start from, for points
+        at most ``reach`` metres away: only the cells they can read are pooled (``search_region``),
+        and the searches return the same as over the whole grid."""
+        crop = None
+        if around is not None:
+            crop = search_region(grid.values.shape, grid.origin, grid.resolution, around, reach,
+                                 int(math.ceil(self.linear_window / grid.resolution)), self.branch_depth)
+        if crop is None:
+            return PrecomputationStack(quantized_up(grid) if self.quantize else grid, self.branch_depth)
+        r0, r1, c0, c1 = crop
+        part = MatchGrid(np.ascontiguousarray(grid.values[r0:r1, c0:c1]),
+                         np.asarray(grid.origin, dtype=float) + grid.resolution * np.array([c0, r0], dtype=float),
+                         grid.resolution, grid.unknown)
+        stack = PrecomputationStack(quantized_up(part) if self.quantize else part, self.branch_depth, (c0, r0))
+        stack.linear_cells = int(math.ceil(self.linear_window / grid.resolution))
+        return stack
 
     def _match(self, grid, predicted, points, min_score, linear_window, angular_window, stack=None):
         params = SearchParameters.make(linear_window, angular_window, grid.resolution, points)
@@ -115,6 +132,8 @@ class RealTimeCorrelativeScanMatcher:
         n_cand = cells.shape[0] * (2 * w + 1) ** 2
         if self.branch_depth > 0:
             stack = self.stack_for(grid) if stack is None else stack
+            if stack.linear_cells is not None and w > stack.linear_cells:
+                raise ValueError(f"a window of {w} cells on a stack cropped for {stack.linear_cells}")
             scale = 255.0 if stack.grid.values.dtype == np.uint8 and grid.values.dtype != np.uint8 else 1.0
             found = branch_and_bound(stack, cells, w, min_score * scale, self.penalty, params.angles)
             if found is None:

@@ -84,10 +84,14 @@ class PrecomputationStack:
     copy of the values.
     """
 
-    def __init__(self, grid: MatchGrid, depth: int):
+    def __init__(self, grid: MatchGrid, depth: int, cell_offset: tuple[int, int] = (0, 0)):
+        """``cell_offset`` (col, row): ``grid`` is a crop (``search_region``) whose cell (0, 0) is that
+        cell of the grid the searches compute their cells in; ``branch_and_bound`` shifts them."""
         values = grid.values
         rows, cols = values.shape
         self.depth = depth
+        self.cell_offset = (int(cell_offset[0]), int(cell_offset[1]))
+        self.linear_cells: int | None = None  # a crop serves windows up to this half-width only
         self.shape = (rows, cols)
         self.offsets = tuple((1 << d) - 1 for d in range(depth + 1))
         sizes = [(rows + p) * (cols + p) for p in self.offsets]
@@ -108,6 +112,32 @@ class PrecomputationStack:
     @property
     def nbytes(self) -> int:
         return self.data.nbytes
+
+
+def search_region(shape: tuple[int, int], origin, resolution: float, poses, reach: float, linear_cells: int,
+                  depth: int) -> tuple[int, int, int, int] | None:
+    """(row0, row1, col0, col1), half-open: the cells of a grid of ``shape`` that branch-and-bound
+    with ``depth`` levels and a window of ``linear_cells`` around any of ``poses`` can read, for
+    points at most ``reach`` metres from the pose; None when that is the whole grid.
+
+    A point's cell lies within ceil(reach / resolution) + 1 cells of its pose's cell whatever the
+    rotation (one more for rounding); candidates move it by −w … w cells and a block of level d
+    starting there covers 2^d − 1 more. A stack built on these cells alone (``PrecomputationStack``
+    with ``cell_offset``) therefore holds every value such a search reads, and the search returns
+    what it returns on the whole grid (tested).
+    """
+    rows, cols = shape
+    r = int(math.ceil(reach / resolution)) + 2
+    lo_extra, hi_extra = r + linear_cells, r + linear_cells + (1 << depth) - 1
+    c = np.floor((np.asarray(poses, dtype=float).reshape(-1, 3)[:, :2] - np.asarray(origin)[:2]) / resolution)
+    c0, r0 = int(c[:, 0].min()) - lo_extra, int(c[:, 1].min()) - lo_extra
+    c1, r1 = int(c[:, 0].max()) + hi_extra + 1, int(c[:, 1].max()) + hi_extra + 1
+    c0, r0, c1, r1 = max(c0, 0), max(r0, 0), min(c1, cols), min(r1, rows)
+    if r0 == 0 and c0 == 0 and r1 == rows and c1 == cols:
+        return None
+    # a region wholly off the grid reads only ``unknown``: one cell of the grid, never read, stands for it
+    r0, c0 = min(r0, rows - 1), min(c0, cols - 1)
+    return r0, max(r1, r0 + 1), c0, max(c1, c0 + 1)
 
 
 def _double_block(prev: np.ndarray, h: int, fill, out: np.ndarray) -> None:
@@ -204,6 +234,8 @@ def branch_and_bound(stack: PrecomputationStack, cells: np.ndarray, linear_cells
     w_r = penalty.rotation_weight if penalty is not None else 0.0
     ang = np.zeros(cells.shape[0]) if angles is None else np.ascontiguousarray(angles, dtype=np.float64)
     rows, cols = stack.shape
+    if stack.cell_offset != (0, 0):
+        cells = cells - np.array(stack.cell_offset, dtype=cells.dtype)
     a, x, y, s = _kernels.branch_and_bound(stack.data, stack.starts, rows, cols, cells, ang, int(linear_cells),
                                            float(min_score), float(stack.grid.unknown), float(w_t), float(w_r),
                                            float(stack.grid.resolution))
