@@ -75,3 +75,32 @@ def test_sync_waits_for_the_queue():
     b.wait()
     assert seen == list(range(200))  # all of them, in order
     b.join()
+
+
+def test_the_worker_uses_every_numba_thread_only_while_the_caller_waits():
+    """While the caller works, the worker's kernels run on one numba thread (local SLAM has the
+    other core); calls that run while the caller waits in ``wait`` or ``join`` get them all."""
+    import threading
+
+    import numba
+
+    if numba.get_num_threads() < 2:
+        pytest.skip("numba has one thread here")
+    b = Background()
+    seen = []
+
+    def record():
+        seen.append(numba.get_num_threads())
+
+    b.submit(record)
+    for _ in range(500):  # the caller keeps working (it does not wait) until the call has run
+        if seen:
+            break
+        threading.Event().wait(0.01)
+    for finish in (b.wait, b.join):
+        gate = threading.Event()
+        b.submit(gate.wait)  # the next call starts only once the caller is waiting
+        b.submit(record)
+        threading.Timer(0.3, gate.set).start()
+        finish()
+    assert seen == [1, numba.get_num_threads(), numba.get_num_threads()]

@@ -468,3 +468,34 @@ def test_cropped_stack_searches_as_the_whole_grid():
                 found += 1
                 assert a.score == b.score and np.array_equal(a.pose, b.pose) and a.on_edge == b.on_edge, (case, a, b)
     assert cropped > 200 and off_grid > 10 and found > 200, (cropped, off_grid, found)
+
+
+def test_shared_branch_and_bound_equals_the_sequential_one():
+    """``branch_and_bound_shared`` (coarsest candidates dealt to ``BNB_SHARES`` shares, searched on
+    numba's threads) returns the sequential kernel's (angle, dx, dy, score) exactly: 600 seeded random
+    cases, half on uint8 grids of four values (many exactly tied poses, where the search order
+    decides), with and without the delta penalty and a score floor, cells across the borders."""
+    rng = np.random.default_rng(3)
+    ties = 0
+    for case in range(600):
+        rows, cols = (int(v) for v in rng.integers(10, 90, 2))
+        if rng.random() < 0.5:
+            v = rng.choice(np.array([0, 64, 128, 255], np.uint8), size=(rows, cols))
+            unknown = 128.0
+        else:
+            v = (rng.random((rows, cols)) ** 2).astype(np.float32)
+            unknown = float(rng.choice([0.0, 0.3]))
+        st = PrecomputationStack(MatchGrid(v, np.zeros(2), 0.05, unknown), int(rng.integers(1, 6)))
+        a_n, n = int(rng.integers(1, 9)), int(rng.integers(3, 30))
+        cells = rng.integers(-10, max(rows, cols) + 10, (a_n, n, 2)).astype(np.int32)
+        w_t, w_r = (0.1, 0.1) if rng.random() < 0.5 else (0.0, 0.0)
+        floor = float(rng.choice([0.0, 0.3 * (255 if v.dtype == np.uint8 else 1)]))
+        args = (st.data, st.starts, rows, cols, cells, np.linspace(-0.2, 0.2, a_n), int(rng.integers(1, 20)),
+                floor, unknown, w_t, w_r, 0.05)
+        seq = _kernels.branch_and_bound(*args)
+        assert tuple(_kernels.branch_and_bound_shared(*args)) == tuple(seq), case
+        if v.dtype == np.uint8 and seq[0] >= 0:
+            ex = exhaustive(MatchGrid(v, np.zeros(2), 0.05, unknown), cells, args[6],
+                            DeltaPenalty(w_t, w_r) if w_t else None, args[5])
+            ties += int(np.count_nonzero(np.abs(ex - ex.max()) < 1e-6) > 1)
+    assert ties > 50  # the order among tied poses was put to the test

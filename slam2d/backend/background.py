@@ -9,6 +9,11 @@ reads global SLAM's results: what global SLAM computes does not depend on how fa
 so outputs are the same as when everything runs on the caller's thread (tested). Only the
 estimate ``add_scan`` returns depends on timing: it carries the latest optimization's correction.
 An exception on the worker is raised on the caller's next call.
+
+The worker's parallel kernels run on one numba thread while the caller works (local SLAM has the
+other core), and on all of them while the caller waits for the worker (``wait``, ``join``): the
+loop search left at the end of a run then uses both cores. Kernels give the same results on any
+number of threads.
 """
 from __future__ import annotations
 
@@ -24,7 +29,9 @@ class Background:
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._error: BaseException | None = None
         self._idle = threading.Event()  # set while the worker waits for work
-        self._thread = threading.Thread(target=_work, args=(self._queue, self, self._idle), name=name, daemon=True)
+        self._waited = threading.Event()  # set while the caller waits for the worker: its cores are free
+        self._thread = threading.Thread(target=_work, args=(self._queue, self, self._idle, self._waited), name=name,
+                                        daemon=True)
         self._thread.start()
         # a Slam dropped without finish: the thread ends once it has drained its queue
         self._finalizer = weakref.finalize(self, self._queue.put, None)
@@ -42,14 +49,19 @@ class Background:
         """Wait until every call queued so far has run; raise what one of them raised."""
         done = threading.Event()
         self.submit(done.set)
-        while not done.wait(0.1):  # the thread may end on an error before it reaches the marker
-            if not self._thread.is_alive() or self._error is not None:
-                break
+        self._waited.set()
+        try:
+            while not done.wait(0.1):  # the thread may end on an error before it reaches the marker
+                if not self._thread.is_alive() or self._error is not None:
+                    break
+        finally:
+            self._waited.clear()
         self.raise_error()
 
     def join(self) -> None:
         """Wait until every queued call has run; raise what one of them raised."""
         if self._finalizer.alive:
+            self._waited.set()
             self._finalizer()
             self._thread.join()
         self.raise_error()
@@ -60,10 +72,13 @@ class Background:
             raise self._error
 
 
-def _work(q: queue.SimpleQueue, owner: Background, idle: threading.Event):
+def _work(q: queue.SimpleQueue, owner: Background, idle: threading.Event, waited: threading.Event):
+    import numba
+
     # holds the Background only while reporting an error, so dropping it ends the thread
     ref = weakref.ref(owner)
     del owner
+    threads = numba.get_num_threads()  # numba's thread count is per calling thread
     failed = False
     while True:
         if q.empty():
@@ -76,6 +91,7 @@ def _work(q: queue.SimpleQueue, owner: Background, idle: threading.Event):
             continue
         fn, args = item
         try:
+            numba.set_num_threads(threads if waited.is_set() else 1)
             fn(*args)
         except BaseException as e:  # noqa: BLE001 - handed to the caller's thread
             failed = True

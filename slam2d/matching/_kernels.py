@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 
 @njit(cache=True, nogil=True)
@@ -289,15 +289,9 @@ def _penalty(w_t, w_r, res, angle, x, y, width):
 
 
 @njit(cache=True, nogil=True)
-def branch_and_bound(data, starts, rows, cols, cells, angles, w, min_score, unknown, w_t, w_r, res):
-    """Depth-first branch-and-bound (Hess et al. 2016, Algorithm 3) with an explicit stack.
-
-    Level d of the precomputation stack (``search.PrecomputationStack``: ``data[starts[d]:]``,
-    padded by 2^d − 1 on the low side) holds the max-pooled grid of width 2^d; candidates are
-    (angle, dx, dy) with dx, dy in [-w, w]; children are visited best first and a subtree
-    whose bound is not above the best score so far is cut. Returns (angle index, dx, dy,
-    score) or score < 0.
-    """
+def _top_candidates(data, starts, rows, cols, cells, angles, w, unknown, w_t, w_r, res):
+    """The coarsest level's candidates (K, 3) = (angle, dx, dy), their bounds, and the order in which
+    branch-and-bound visits them: ``order[r]`` is the r-th, best bound first."""
     depth = starts.shape[0] - 2
     top = 1 << depth
     n_off = (2 * w) // top + 1
@@ -317,24 +311,23 @@ def branch_and_bound(data, starts, rows, cols, cells, angles, w, min_score, unkn
                 sc[k] = _block_score(data, starts[depth], rows, cols, top - 1, cells, a, x, y, unknown) * _penalty(
                     w_t, w_r, res, angles[a], x, y, top)
                 k += 1
-    order = np.argsort(sc)  # ascending: pushed so that the best is popped first
-    cap = k0 + 4 * (depth + 1) * 4 + 16
-    st_a = np.empty(cap, dtype=np.int64)
+    # the order of the original stack (pushed in ascending order, popped from the top)
+    return cand, sc, np.argsort(sc)[::-1]
+
+
+@njit(cache=True, nogil=True)
+def _subtree(data, starts, rows, cols, cells, angles, w, unknown, w_t, w_r, res, a, x, y, s, best, found):
+    """Depth-first search of one coarsest-level candidate (a, x, y) with bound ``s``: children best
+    first, a subtree whose bound is not above ``best`` cut. A leaf scoring above ``best`` becomes
+    the best; returns the best score and writes its (a, dx, dy) into ``found``."""
+    depth = starts.shape[0] - 2
+    cap = 4 * (depth + 1) + 4
     st_x = np.empty(cap, dtype=np.int64)
     st_y = np.empty(cap, dtype=np.int64)
     st_d = np.empty(cap, dtype=np.int64)
     st_s = np.empty(cap)
-    sp = 0
-    for j in range(k0):
-        i = order[j]
-        st_a[sp] = cand[i, 0]
-        st_x[sp] = cand[i, 1]
-        st_y[sp] = cand[i, 2]
-        st_d[sp] = depth
-        st_s[sp] = sc[i]
-        sp += 1
-    best = min_score
-    ba, bx, by = -1, 0, 0
+    st_x[0], st_y[0], st_d[0], st_s[0] = x, y, depth, s
+    sp = 1
     ks = np.empty(4)
     kx = np.empty(4, dtype=np.int64)
     ky = np.empty(4, dtype=np.int64)
@@ -344,12 +337,11 @@ def branch_and_bound(data, starts, rows, cols, cells, angles, w, min_score, unkn
         if s <= best:
             continue
         d = st_d[sp]
-        a = st_a[sp]
         x = st_x[sp]
         y = st_y[sp]
         if d == 0:
             best = s
-            ba, bx, by = a, x, y
+            found[0], found[1], found[2] = a, x, y
             continue
         half = 1 << (d - 1)
         m = 0
@@ -370,14 +362,73 @@ def branch_and_bound(data, starts, rows, cols, cells, angles, w, min_score, unkn
                 if ks[q] < ks[lo]:
                     lo = q
             if ks[lo] > best:
-                st_a[sp] = a
                 st_x[sp] = kx[lo]
                 st_y[sp] = ky[lo]
                 st_d[sp] = d - 1
                 st_s[sp] = ks[lo]
                 sp += 1
             ks[lo] = np.inf
-    return ba, bx, by, best
+    return best
+
+
+@njit(cache=True, nogil=True)
+def branch_and_bound(data, starts, rows, cols, cells, angles, w, min_score, unknown, w_t, w_r, res):
+    """Depth-first branch-and-bound (Hess et al. 2016, Algorithm 3) with an explicit stack.
+
+    Level d of the precomputation stack (``search.PrecomputationStack``: ``data[starts[d]:]``,
+    padded by 2^d − 1 on the low side) holds the max-pooled grid of width 2^d; candidates are
+    (angle, dx, dy) with dx, dy in [-w, w]; the coarsest ones are visited best bound first, each
+    one's subtree wholly before the next (children best first), and a subtree whose bound is not
+    above the best score so far is cut. Returns (angle index, dx, dy, score) or score < 0.
+    """
+    cand, sc, order = _top_candidates(data, starts, rows, cols, cells, angles, w, unknown, w_t, w_r, res)
+    best = min_score
+    found = np.array([-1, 0, 0], dtype=np.int64)
+    for r in range(order.shape[0]):
+        i = order[r]
+        if sc[i] > best:
+            best = _subtree(data, starts, rows, cols, cells, angles, w, unknown, w_t, w_r, res,
+                            cand[i, 0], cand[i, 1], cand[i, 2], sc[i], best, found)
+    return found[0], found[1], found[2], best
+
+
+#: coarsest-level candidates are dealt to this many shares (by rank, in turn) in the parallel search;
+#: a constant, so that the result does not depend on the thread count
+BNB_SHARES = 8
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def branch_and_bound_shared(data, starts, rows, cols, cells, angles, w, min_score, unknown, w_t, w_r, res):
+    """``branch_and_bound``'s result, searched by numba's threads: the coarsest candidates, in
+    visiting order, are dealt to ``BNB_SHARES`` shares, each searched as ``branch_and_bound``
+    searches all of them (its own best for cutting). A share's best is the first leaf of the top
+    score in its own order; the sequential search returns the first leaf of the top score in the
+    whole order (a leaf replaces the best only when it scores above it, and a cut subtree holds
+    none that does). So the share with the highest score, the earliest-ranked first among equal
+    scores, holds exactly the sequential result."""
+    cand, sc, order = _top_candidates(data, starts, rows, cols, cells, angles, w, unknown, w_t, w_r, res)
+    n = BNB_SHARES
+    bests = np.full(n, min_score)
+    ranks = np.full(n, order.shape[0], dtype=np.int64)
+    founds = np.full((n, 3), -1, dtype=np.int64)
+    for c in prange(n):
+        best = min_score
+        found = np.array([-1, 0, 0], dtype=np.int64)
+        for r in range(c, order.shape[0], n):
+            i = order[r]
+            if sc[i] > best:
+                b = _subtree(data, starts, rows, cols, cells, angles, w, unknown, w_t, w_r, res,
+                             cand[i, 0], cand[i, 1], cand[i, 2], sc[i], best, found)
+                if b > best:
+                    best = b
+                    ranks[c] = r
+        bests[c] = best
+        founds[c, 0], founds[c, 1], founds[c, 2] = found[0], found[1], found[2]
+    pick = 0
+    for c in range(1, n):
+        if bests[c] > bests[pick] or (bests[c] == bests[pick] and ranks[c] < ranks[pick]):
+            pick = c
+    return founds[pick, 0], founds[pick, 1], founds[pick, 2], bests[pick]
 
 
 @njit(cache=True, nogil=True)

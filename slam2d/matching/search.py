@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from slam2d.matching import _kernels
@@ -236,9 +237,10 @@ def branch_and_bound(stack: PrecomputationStack, cells: np.ndarray, linear_cells
     rows, cols = stack.shape
     if stack.cell_offset != (0, 0):
         cells = cells - np.array(stack.cell_offset, dtype=cells.dtype)
-    a, x, y, s = _kernels.branch_and_bound(stack.data, stack.starts, rows, cols, cells, ang, int(linear_cells),
-                                           float(min_score), float(stack.grid.unknown), float(w_t), float(w_r),
-                                           float(stack.grid.resolution))
+    # on more than one numba thread the coarsest candidates are shared among them; the result is the same
+    kernel = _kernels.branch_and_bound_shared if numba.get_num_threads() > 1 else _kernels.branch_and_bound
+    a, x, y, s = kernel(stack.data, stack.starts, rows, cols, cells, ang, int(linear_cells), float(min_score),
+                        float(stack.grid.unknown), float(w_t), float(w_r), float(stack.grid.resolution))
     if a < 0:
         return None
     return int(a), int(x), int(y), float(s)
