@@ -111,9 +111,9 @@ class RealTimeCorrelativeScanMatcher:
         at most ``reach`` metres away: only the cells they can read are pooled (``search_region``),
         and the searches return the same as over the whole grid."""
         crop = None
+        w = int(math.ceil(self.linear_window / grid.resolution))
         if around is not None:
-            crop = search_region(grid.values.shape, grid.origin, grid.resolution, around, reach,
-                                 int(math.ceil(self.linear_window / grid.resolution)), self.branch_depth)
+            crop = search_region(grid.values.shape, grid.origin, grid.resolution, around, reach, w, self.branch_depth)
         if crop is None:
             return PrecomputationStack(quantized_up(grid) if self.quantize else grid, self.branch_depth)
         r0, r1, c0, c1 = crop
@@ -121,7 +121,7 @@ class RealTimeCorrelativeScanMatcher:
                          np.asarray(grid.origin, dtype=float) + grid.resolution * np.array([c0, r0], dtype=float),
                          grid.resolution, grid.unknown)
         stack = PrecomputationStack(quantized_up(part) if self.quantize else part, self.branch_depth, (c0, r0))
-        stack.linear_cells = int(math.ceil(self.linear_window / grid.resolution))
+        stack.linear_cells = w
         return stack
 
     def _match(self, grid, predicted, points, min_score, linear_window, angular_window, stack=None):
