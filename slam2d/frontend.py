@@ -34,7 +34,7 @@ from slam2d.matching.real_time import RealTimeCorrelativeScanMatcher
 from slam2d.matching.refine import refine
 from slam2d.matching.search import SearchParameters, angular_step
 from slam2d.motion_filter import MotionFilter
-from slam2d.range_data import range_data, voxel_filter
+from slam2d.range_data import range_data, voxel_filter_index
 
 log = logging.getLogger(__name__)
 
@@ -251,7 +251,8 @@ class LocalSlam:
         timings = {}
         t0 = time.perf_counter()
         rd = range_data(scan, self.cfg.range_filter)
-        points = voxel_filter(rd.hits, self.cfg.range_filter.voxel_filter_size)
+        kept = voxel_filter_index(rd.hits, self.cfg.range_filter.voxel_filter_size)
+        points = rd.hits[kept]
         predicted = self.extrapolator.predict(scan.timestamp, scan.odom_pose)
         pose = predicted
         score = None
@@ -357,7 +358,7 @@ class LocalSlam:
             doubt, self._doubt = (float(self._doubt[0]), float(self._doubt[1])), np.zeros(2)
         return MatchingResult(scan.timestamp, pose, rd, inserted, score, timings,
                               active_submap=self.submaps.matching_submap, finished_submaps=finished,
-                              inserted_into=inserted_into, match=kept_match, points=points,
+                              inserted_into=inserted_into, match=kept_match, points=points, point_index=kept,
                               quality=quality, doubt=doubt)
 
     def _step_doubt(self, quality, pose, replaced, had_submap) -> np.ndarray:

@@ -44,9 +44,14 @@ def range_data(scan: Scan, cfg: RangeFilterConfig) -> RangeData:
 
 def voxel_filter(points: np.ndarray, size: float) -> np.ndarray:
     """One point per square cell of ``size`` (the first in input order), like Cartographer's voxel filter."""
+    return points[voxel_filter_index(points, size)]
+
+
+def voxel_filter_index(points: np.ndarray, size: float) -> np.ndarray:
+    """The indices (increasing) of the points ``voxel_filter`` keeps."""
     if size <= 0 or len(points) == 0:
-        return points
-    return points[_kernels.voxel_filter_indices(points, float(size))]
+        return np.arange(len(points))
+    return _kernels.voxel_filter_indices(points, float(size))
 
 
 def adaptive_voxel_filter(points: np.ndarray, min_points: int, max_length: float) -> np.ndarray:
@@ -56,4 +61,16 @@ def adaptive_voxel_filter(points: np.ndarray, min_points: int, max_length: float
     is 0). Matching costs time in proportion to the points."""
     if min_points <= 0 or len(points) <= min_points:
         return points
-    return points[_kernels.adaptive_voxel_indices(points, int(min_points), float(max_length))]
+    return points[adaptive_voxel_filter_index(points, min_points, max_length)]
+
+
+def adaptive_voxel_filter_index(points: np.ndarray, min_points: int, max_length: float) -> np.ndarray:
+    """The indices (increasing) of the points ``adaptive_voxel_filter`` keeps."""
+    if min_points <= 0 or len(points) <= min_points:
+        return np.arange(len(points))
+    return _kernels.adaptive_voxel_indices(points, int(min_points), float(max_length))
+
+
+def compact_index(index: np.ndarray, n: int) -> np.ndarray:
+    """Indices into ``n`` points in the smallest integer type that holds them (kept per scan)."""
+    return index.astype(np.uint16 if n <= 1 << 16 else np.int64)

@@ -28,12 +28,14 @@ from typing import NamedTuple
 import numba
 import numpy as np
 
+from slam2d.allocator import map_large_blocks, return_freed_memory
 from slam2d.config import SlamConfig, load_config
 from slam2d.errors import InputError, UsageError
 from slam2d.geometry import between, compose
 from slam2d.grid.map_builder import build_map
 from slam2d.grid.probability_grid import ProbabilityGrid
 from slam2d.observer import Observer
+from slam2d.range_data import compact_index
 from slam2d.types import Estimate, Node, Scan
 
 MODES = ("global", "local", "odometry")
@@ -101,6 +103,7 @@ class Slam:
         self.mode = mode
         self.source_name = str(source_name)
         self.observer = observer or Observer()
+        map_large_blocks()  # grids, stacks and score volumes come and go for hours (``allocator``)
         if mode == "odometry":
             from slam2d.odometry import OdometryTracker
 
@@ -178,20 +181,21 @@ class Slam:
         self._ground_truth.append(scan.ground_truth)
         self._local.append(np.asarray(res.local_pose, dtype=float))
         if self._keep_points:
-            self._points.append(None if res.points is None else res.points.astype(np.float32))
+            self._points.append(_kept_points(res))
         gs = self.global_slam
+        hits = res.range_data.hits.astype(np.float32) if res.inserted else None  # the node's and global SLAM's
         if gs is not None:
             t1 = time.perf_counter()
             if res.inserted:  # what global SLAM keeps of the scan, so the worker shares nothing that changes
                 self._global(gs.add_node, NodeStamp(scan.index, scan.timestamp, scan.timestamp_text),
-                             np.array(res.local_pose, dtype=float), res.range_data.hits, res.covariance,
+                             np.array(res.local_pose, dtype=float), hits, res.covariance,
                              list(res.inserted_into), res.doubt)
             for sub in res.finished_submaps:
                 self._global(gs.add_finished_submap, sub)
             self._stage("global", (time.perf_counter() - t1) * 1e3)
         if res.inserted:
             rd = res.range_data
-            self.nodes.append(Node(i, scan.timestamp, np.asarray(res.local_pose, dtype=float), rd.hits.astype(np.float32),
+            self.nodes.append(Node(i, scan.timestamp, np.asarray(res.local_pose, dtype=float), hits,
                                    rd.misses.astype(np.float32), rd.origin.astype(np.float32)))
         self.observer.on_scan(scan, res)
         local = self._local[-1]
@@ -239,10 +243,10 @@ class Slam:
         if gs is not None:
             t1 = time.perf_counter()
             gs.release_search()
-            _return_freed_memory()  # before the last solves: the solver process's peak comes on top
+            return_freed_memory()  # before the last solves: the solver process's peak comes on top
             poses = globalize(poses, gs.finish())
             self._stage_ms["final_optimization"] = [(time.perf_counter() - t1) * 1e3]
-        _return_freed_memory()
+        return_freed_memory()
         t_map = time.perf_counter()
         node_poses = {n.scan_index: poses[n.scan_index] for n in self.nodes} if gs is not None else None
         grid = build_map(cfg, self.nodes, node_poses)
@@ -252,15 +256,21 @@ class Slam:
 
             t1 = time.perf_counter()
             fr = cfg.final_refinement
-            poses = refine_trajectory(grid, poses, self._points, fr.translation_weight, fr.rotation_weight,
-                                      cfg.refine.max_iterations, cfg.refine.occupied_space_weight)
+            points = self._refinement_points()
             self._points = []
+            poses = refine_trajectory(grid, poses, points, fr.translation_weight, fr.rotation_weight,
+                                      cfg.refine.max_iterations, cfg.refine.occupied_space_weight)
             self._stage_ms["final_refinement"] = [(time.perf_counter() - t1) * 1e3]
         summary = self._summary(poses, map_s)
         result = SlamResult(cfg, self._stamps, np.array(self._times), poses, grid, summary, self.nodes,
                             list(gs.records) if gs is not None else [], graph_of(self.tracker, self.nodes, poses, gs))
         self.observer.on_finish(result)
         return result
+
+    def _refinement_points(self) -> list[np.ndarray | None]:
+        """Every scan's matched points (float32) for the final refinement, as ``_kept_points`` kept them."""
+        hits = {n.scan_index: n.hits for n in self.nodes}
+        return [p if p is None or p.ndim == 2 else hits[i][p] for i, p in enumerate(self._points)]
 
     # ---- bookkeeping
     def _stage(self, name, ms):
@@ -311,18 +321,15 @@ class NodeStamp(NamedTuple):
     timestamp_text: str | None
 
 
-def _return_freed_memory() -> None:
-    """Give memory freed by the allocator back to the system (glibc's ``malloc_trim``). Submap grids
-    of a few MB each come from the heap, not from their own mappings, once glibc's mmap threshold
-    has grown past their size; freed, they stay in the process until trimmed."""
-    import ctypes
-    import ctypes.util
-
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        libc.malloc_trim(0)
-    except (OSError, AttributeError):  # not glibc: nothing to do
-        pass
+def _kept_points(res) -> np.ndarray | None:
+    """What the final refinement needs of a scan: its matched points (float32), or, for a scan that
+    became a node, which of the node's hits (kept as float32 anyway) they are (the same numbers in
+    a quarter of the memory)."""
+    if res.points is None:
+        return None
+    if res.inserted and res.point_index is not None:
+        return compact_index(res.point_index, len(res.range_data.hits))
+    return res.points.astype(np.float32)
 
 
 def globalize(local_poses: np.ndarray, node_global: dict[int, np.ndarray]) -> np.ndarray:

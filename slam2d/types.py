@@ -90,6 +90,7 @@ class MatchingResult:
     inserted_into: list = field(default_factory=list)     # (submap index, submap local pose) it went into
     match: object = None                  # the correlative match of an inserted scan
     points: np.ndarray | None = None      # the filtered points that were matched (tracking frame)
+    point_index: np.ndarray | None = None  # points == range_data.hits[point_index], when known
     quality: str = "unmatched"            # trusted | weak | forced | untrusted | unmatched
     #: how far (m, rad) the pose may be off beyond the drift model, from the steps since the last
     #: inserted scan that local SLAM could not vouch for (``LocalSlam._step_doubt``; sizes global SLAM's windows)

@@ -155,3 +155,35 @@ def test_map_image_is_top_row_first(tmp_path):
     x = ox + (c + 0.5) * g.resolution
     assert abs(y - 2.0) < 0.1 and abs(x) < 0.1
     assert (np.argwhere(img == OCCUPIED)[:, 0] == r).all()
+
+
+def test_refinement_points_kept_compactly_are_the_matched_points():
+    """A scan that became a node keeps only which of the node's hits it matched; the final refinement
+    gets back exactly the points local SLAM matched (as float32), for nodes and other scans alike,
+    and global SLAM's loop points of a node are ``loop_points`` of its hits."""
+    from slam2d.backend.loop_closure import loop_points
+
+    slam = slam2d.Slam()
+    for _, s in zip(range(300), slam2d.open_source(BUNDLED)):
+        slam.add_scan(s)
+    slam.sync()
+    got = slam._refinement_points()
+    assert len(got) == 300
+    kinds = {p.ndim for p in slam._points if p is not None}
+    assert kinds == {1, 2}  # some scans kept as indices (nodes), others as points
+    # the same scans once more through local SLAM alone: the points it matched (they depend on the scan only)
+    again = slam2d.Slam(mode="local")
+    for i, s in zip(range(300), slam2d.open_source(BUNDLED)):
+        res = again.tracker.add_scan(s)
+        want = None if res.points is None else res.points.astype(np.float32)
+        if want is None:
+            assert got[i] is None
+        else:
+            np.testing.assert_array_equal(got[i], want)
+            assert got[i].dtype == np.float32
+    gs = slam.global_slam
+    for node in slam.nodes[:50]:
+        lc = slam.config.loop_closure
+        want = loop_points(node.hits, lc.voxel_filter_size, lc.adaptive_voxel_min_points, lc.adaptive_voxel_max_length)
+        np.testing.assert_array_equal(gs.node_points(node.scan_index), want)
+    slam.finish()
