@@ -183,19 +183,18 @@ class Slam:
         if self._keep_points:
             self._points.append(_kept_points(res))
         gs = self.global_slam
-        hits = res.range_data.hits.astype(np.float32) if res.inserted else None  # the node's and global SLAM's
         if gs is not None:
             t1 = time.perf_counter()
             if res.inserted:  # what global SLAM keeps of the scan, so the worker shares nothing that changes
                 self._global(gs.add_node, NodeStamp(scan.index, scan.timestamp, scan.timestamp_text),
-                             np.array(res.local_pose, dtype=float), hits, res.covariance,
+                             np.array(res.local_pose, dtype=float), res.range_data.hits, res.covariance,
                              list(res.inserted_into), res.doubt)
             for sub in res.finished_submaps:
                 self._global(gs.add_finished_submap, sub)
             self._stage("global", (time.perf_counter() - t1) * 1e3)
         if res.inserted:
             rd = res.range_data
-            self.nodes.append(Node(i, scan.timestamp, np.asarray(res.local_pose, dtype=float), hits,
+            self.nodes.append(Node(i, scan.timestamp, np.asarray(res.local_pose, dtype=float), rd.hits.astype(np.float32),
                                    rd.misses.astype(np.float32), rd.origin.astype(np.float32)))
         self.observer.on_scan(scan, res)
         local = self._local[-1]

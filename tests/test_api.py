@@ -159,10 +159,7 @@ def test_map_image_is_top_row_first(tmp_path):
 
 def test_refinement_points_kept_compactly_are_the_matched_points():
     """A scan that became a node keeps only which of the node's hits it matched; the final refinement
-    gets back exactly the points local SLAM matched (as float32), for nodes and other scans alike,
-    and global SLAM's loop points of a node are ``loop_points`` of its hits."""
-    from slam2d.backend.loop_closure import loop_points
-
+    gets back exactly the points local SLAM matched (as float32), for nodes and other scans alike."""
     slam = slam2d.Slam()
     for _, s in zip(range(300), slam2d.open_source(BUNDLED)):
         slam.add_scan(s)
@@ -181,9 +178,4 @@ def test_refinement_points_kept_compactly_are_the_matched_points():
         else:
             np.testing.assert_array_equal(got[i], want)
             assert got[i].dtype == np.float32
-    gs = slam.global_slam
-    for node in slam.nodes[:50]:
-        lc = slam.config.loop_closure
-        want = loop_points(node.hits, lc.voxel_filter_size, lc.adaptive_voxel_min_points, lc.adaptive_voxel_max_length)
-        np.testing.assert_array_equal(gs.node_points(node.scan_index), want)
     slam.finish()

@@ -179,9 +179,7 @@ def test_adaptive_voxel_filter_matches_oracle(seed):
 @pytest.mark.parametrize("seed", range(4))
 def test_filter_indices_pick_the_filters_points(seed):
     """``voxel_filter_index`` and ``adaptive_voxel_filter_index`` name (increasing) exactly the points
-    their filters return, also when the filter keeps everything (size 0, few points, no points);
-    ``loop_point_index`` the same for ``loop_points``."""
-    from slam2d.backend.loop_closure import loop_point_index, loop_points
+    their filters return, also when the filter keeps everything (size 0, few points, no points)."""
     from slam2d.range_data import adaptive_voxel_filter_index, voxel_filter_index
 
     rng = np.random.default_rng(seed)
@@ -194,5 +192,3 @@ def test_filter_indices_pick_the_filters_points(seed):
             idx = adaptive_voxel_filter_index(pts, min_points, max_length)
             assert np.all(np.diff(idx) > 0)
             np.testing.assert_array_equal(pts[idx], adaptive_voxel_filter(pts, min_points, max_length))
-        idx = loop_point_index(pts.astype(np.float32), 0.05, 100, 0.9)
-        np.testing.assert_array_equal(pts.astype(np.float32)[idx], loop_points(pts.astype(np.float32), 0.05, 100, 0.9))

@@ -23,8 +23,7 @@ import numpy as np
 
 from slam2d.backend.consistency import ConsistencyParams, PairCache, inconsistent
 from slam2d.backend.drift import DriftBound
-from slam2d.backend.loop_closure import StackCache, SubmapMatcher, loop_point_index
-from slam2d.range_data import compact_index
+from slam2d.backend.loop_closure import StackCache, SubmapMatcher, loop_points
 from slam2d.backend.wide_search import coarse_grid, coarse_match, frame_offset, submap_content
 from slam2d.geometry import between, compose, inverse
 from slam2d.matching.real_time import unmatched_covariance
@@ -97,11 +96,6 @@ class GlobalSlam:
         """A submap's global pose is its first node's."""
         return self.global_node(self.submap_anchor[k])
 
-    def node_points(self, j) -> np.ndarray:
-        """Node j's points for loop-closure matching (``loop_closure.loop_points`` of its hits)."""
-        node = self.nodes[j]
-        return np.asarray(node["hits"][node["keep"]], dtype=float)
-
     # ---- input from local SLAM
     def add_node(self, scan, local_pose, hits, covariance, inserted_into, doubt=(0.0, 0.0)):
         """``doubt``: what local SLAM could not vouch for since the last node (``MatchingResult.doubt``)."""
@@ -113,9 +107,8 @@ class GlobalSlam:
         self.drift.add(j, step, *doubt)
         self.nodes[j] = {"local": local_pose, "time": scan.timestamp, "path": path,
                          "stamp": scan.timestamp_text or f"{scan.timestamp:.9f}",
-                         "hits": hits, "keep": compact_index(loop_point_index(hits, self.lc.voxel_filter_size,
-                                                                          self.lc.adaptive_voxel_min_points,
-                                                                          self.lc.adaptive_voxel_max_length), len(hits))}
+                         "points": loop_points(hits, self.lc.voxel_filter_size, self.lc.adaptive_voxel_min_points,
+                                                     self.lc.adaptive_voxel_max_length)}
         self.node_order.append(j)
         self.graph.add_node(j, compose(self.correction, local_pose))
         if covariance is None:  # never matched: pure prediction, trusted least
@@ -168,7 +161,7 @@ class GlobalSlam:
             return
         m = SubmapMatcher(submap, self.lc.branch_depth, self.stacks)
         self.matchers[submap.index] = m
-        own = [(self.node_points(j), self.nodes[j]["local"]) for j in submap.node_indices if j in self.nodes]
+        own = [(self.nodes[j]["points"], self.nodes[j]["local"]) for j in submap.node_indices if j in self.nodes]
         self.min_scores[submap.index] = min_score_for(self.lc, m.self_score(own))
         # earlier nodes near the new submap (sampled), excluding those inside it
         inside = set(submap.node_indices)
@@ -232,7 +225,7 @@ class GlobalSlam:
         lin, ang = window
         t0 = time.perf_counter()
         min_score = self.min_scores[k]
-        res = m.match(self.node_points(j), initial, lin, ang, min_score,
+        res = m.match(node["points"], initial, lin, ang, min_score,
                       (lc.refine_occupied_weight, lc.refine_translation_weight, lc.refine_rotation_weight, 20),
                       lc.min_margin, (lc.margin_window, math.radians(lc.margin_window_deg)),
                       (lc.margin_exclusion, math.radians(lc.margin_exclusion_deg)))
@@ -348,7 +341,7 @@ class GlobalSlam:
         grid = self.matchers[k].submap.grid
         counts = []
         for j in own:
-            pts = self.node_points(j)
+            pts = self.nodes[j]["points"]
             if len(pts):
                 cells = self.matchers[k].grid.cells(pts, compose(x, self.nodes[j]["local"]), np.zeros(1))[0]
                 counts.append((int(grid.observed_at(cells).sum()), j))

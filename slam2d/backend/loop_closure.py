@@ -38,7 +38,7 @@ from slam2d.matching import _kernels
 from slam2d.matching.real_time import _covariance, unmatched_covariance
 from slam2d.matching.refine import refine
 from slam2d.matching.search import MatchGrid, PrecomputationStack, SearchParameters, branch_and_bound, exhaustive
-from slam2d.range_data import adaptive_voxel_filter_index, voxel_filter_index
+from slam2d.range_data import adaptive_voxel_filter, voxel_filter
 
 
 @dataclass
@@ -189,18 +189,9 @@ def separated_margin(scores: np.ndarray, lin: int, ang: int) -> float:
 
 
 def loop_points(hits: np.ndarray, voxel: float, min_points: int = 0, max_length: float = 0.0) -> np.ndarray:
-    """A node's points for loop-closure matching (float64): voxel-filtered at ``voxel``, then thinned
-    by the adaptive voxel filter to about ``min_points`` (0: not)."""
-    hits = np.asarray(hits, dtype=float)
-    return hits[loop_point_index(hits, voxel, min_points, max_length)]
+    """A node's points for loop-closure matching: voxel-filtered at ``voxel``, then thinned by the
+    adaptive voxel filter to about ``min_points`` (0: not)."""
+    return adaptive_voxel_filter(voxel_filter(np.asarray(hits, dtype=float), voxel), min_points, max_length)
 
 
-def loop_point_index(hits: np.ndarray, voxel: float, min_points: int = 0, max_length: float = 0.0) -> np.ndarray:
-    """Which of ``hits`` ``loop_points`` keeps (indices, increasing): a node can keep these and its
-    hits instead of a second copy of the points."""
-    hits = np.asarray(hits, dtype=float)
-    first = voxel_filter_index(hits, voxel)
-    return first[adaptive_voxel_filter_index(hits[first], min_points, max_length)]
-
-
-__all__ = ["SubmapMatcher", "LoopMatch", "loop_points", "loop_point_index", "separated_margin"]
+__all__ = ["SubmapMatcher", "LoopMatch", "loop_points", "separated_margin"]
