@@ -183,3 +183,42 @@ def test_stack_cache_keeps_the_most_recent_and_rebuilds_identically():
     assert cache.builds == 4
     ms[0].stack  # cached now
     assert cache.builds == 4
+
+
+def test_packed_finished_submap_searches_as_before():
+    """A finished submap's grid packed (zlib) reads back the same values and shape, takes far less
+    memory, and a matcher over it, whose stack is evicted and rebuilt from the packed grid, finds
+    the same loop match, score, margin and covariance as over the unpacked grid."""
+    import copy
+    from types import SimpleNamespace
+
+    from slam2d.backend.loop_closure import StackCache, SubmapMatcher
+    from slam2d.grid.probability_grid import ProbabilityGrid
+
+    rng = np.random.default_rng(5)
+    walls = np.vstack([np.c_[np.linspace(-4, 4, 400), np.full(400, 3.0)], np.c_[np.full(300, -4.0), np.linspace(-3, 3, 300)],
+                       np.c_[np.linspace(-4, 1, 250), np.full(250, -3.0)], np.c_[np.full(80, 2.5), np.linspace(-1, 1, 80)]])
+    g = ProbabilityGrid(0.05)
+    for _ in range(6):
+        g.insert(rng.normal(0, 0.05, 2), walls + rng.normal(0, 0.01, walls.shape))
+    g.freeze(*g.known_bounds())
+    grids = [g, copy.deepcopy(g)]
+    values, shape = grids[0].prob.copy(), grids[0].shape
+    grids[1].pack()
+    assert grids[1].packed_bytes is not None and grids[1].packed_bytes < values.nbytes / 3
+    assert grids[1].shape == shape
+    np.testing.assert_array_equal(grids[1].prob, values)
+    ms = [SubmapMatcher(SimpleNamespace(index=k, grid=g, local_pose=np.zeros(3)), 4, StackCache(0)) for k, g in enumerate(grids)]
+    scan = walls[::3] + rng.normal(0, 0.01, walls[::3].shape)
+    for initial in ([0.12, -0.08, 0.03], [-0.2, 0.15, -0.05], [0.3, 0.3, 0.08]):
+        initial = np.array(initial)
+        got = []
+        for m in ms:
+            m.cache.clear()  # the packed one rebuilds from its packed grid every time
+            r = m.match(scan, initial, 0.4, 0.1, 0.3, (1.0, 1.0, 1.0, 20))
+            got.append(r)
+        assert got[0] is not None
+        np.testing.assert_array_equal(got[0].pose, got[1].pose)
+        assert (got[0].score, got[0].rescore, got[0].margin) == (got[1].score, got[1].rescore, got[1].margin)
+        np.testing.assert_array_equal(got[0].covariance, got[1].covariance)
+        np.testing.assert_allclose(got[0].pose, [0.0, 0.0, 0.0], atol=0.05)

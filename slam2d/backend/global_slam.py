@@ -163,6 +163,7 @@ class GlobalSlam:
         self.matchers[submap.index] = m
         own = [(self.nodes[j]["points"], self.nodes[j]["local"]) for j in submap.node_indices if j in self.nodes]
         self.min_scores[submap.index] = min_score_for(self.lc, m.self_score(own))
+        submap.grid.pack()  # searches read the values from the matcher's cached stack from now on
         # earlier nodes near the new submap (sampled), excluding those inside it
         inside = set(submap.node_indices)
         first = min(inside, default=0)
@@ -428,8 +429,6 @@ class GlobalSlam:
         submaps' own grids)."""
         self.coarse.clear()
         self.stacks.clear()
-        for m in self.matchers.values():
-            m.grid = None
 
     def finish(self) -> dict[int, np.ndarray]:
         self.release_search()

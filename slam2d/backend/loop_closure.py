@@ -74,7 +74,7 @@ class StackCache:
         if st is not None:
             self._stacks.move_to_end(key)
             return st
-        st = PrecomputationStack(matcher.grid, matcher.depth)
+        st = PrecomputationStack(matcher.source_grid(), matcher.depth)
         self.builds += 1
         self._stacks[key] = st
         while len(self._stacks) > 1 and self.nbytes > self.max_bytes:
@@ -97,11 +97,22 @@ class SubmapMatcher:
         g = submap.grid
         self.submap = submap
         self.depth = depth
-        q = g.prob if g.prob.dtype == np.uint8 else quantize(g.prob)  # a finished submap's grid is uint8 already
-        self.grid = MatchGrid(q, g.origin, g.resolution, float(round(g.unknown_probability * 255)))
         self.cache = StackCache(0) if cache is None else cache  # alone: keeps its one stack
         known = np.argwhere(g.known > 0)
         self.center_local = (g.origin + (known.mean(axis=0)[::-1] + 0.5) * g.resolution) if len(known) else g.origin
+
+    def source_grid(self) -> MatchGrid:
+        """The submap's probabilities as uint8 (× 255), read from the submap (unpacked if packed)."""
+        g = self.submap.grid
+        p = g.prob
+        q = p if p.dtype == np.uint8 else quantize(p)  # a finished submap's grid is uint8 already
+        return MatchGrid(q, g.origin, g.resolution, float(round(g.unknown_probability * 255)))
+
+    @property
+    def grid(self) -> MatchGrid:
+        """The uint8 grid: level 0 of the submap's precomputation stack, the only copy of the values
+        the matcher holds (the stack is rebuilt if the cache has let it go)."""
+        return self.stack.grid
 
     def self_score(self, points_and_poses) -> float:
         """Mean probability under the submap's own nodes' points at their own poses (grid frame):
@@ -125,10 +136,6 @@ class SubmapMatcher:
         search that needs it and dropped after (a finished submap keeps 1 byte a cell)."""
         g = self.grid
         return MatchGrid(dequantize(g.values), g.origin, g.resolution, self.submap.grid.unknown_probability)
-
-    @property
-    def nbytes(self) -> int:
-        return self.grid.values.nbytes
 
     def match(self, points, initial, linear_window, angular_window, min_score, refine_weights,
               min_margin=0.0, margin_window=(0.6, 0.035), margin_exclusion=(0.2, 0.0175)) -> LoopMatch | None:

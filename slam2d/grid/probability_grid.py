@@ -7,6 +7,7 @@ apart from free ones by a ``known`` mask.
 from __future__ import annotations
 
 import math
+import zlib
 
 import numba
 import numpy as np
@@ -45,6 +46,7 @@ class ProbabilityGrid:
         self.unknown_probability = min_probability if unknown_probability is None else unknown_probability
         self.origin = np.array(origin, dtype=float)
         self.logodds = np.zeros(shape, dtype=np.float32)
+        self._packed = None  # a finished grid's probabilities compressed (``pack``), with their shape
         self.prob = np.full(shape, self.unknown_probability, dtype=np.float32)
         self.stamp = np.zeros(shape, dtype=np.int32)
         self._known_bits = None  # frozen grids keep a known mask instead of stamps, 1 bit a cell (np.packbits by row)
@@ -69,8 +71,38 @@ class ProbabilityGrid:
         return out
 
     @property
+    def prob(self) -> np.ndarray:
+        """Probabilities [row, col] (float32; uint8 as p × 255 once frozen). A packed grid unpacks a
+        fresh copy on every read."""
+        p = self._prob
+        if p is None:
+            z, shape = self._packed
+            p = np.frombuffer(zlib.decompress(z), dtype=np.uint8).reshape(shape).copy()
+        return p
+
+    @prob.setter
+    def prob(self, value: np.ndarray):
+        self._prob = value
+        self._packed = None
+
+    def pack(self) -> None:
+        """Keep a frozen grid's probabilities compressed (zlib): a finished submap is read only when a
+        loop search builds its precomputation stack, which then holds the values while it is cached
+        (``loop_closure.StackCache``); mostly-unknown uint8 grids compress several times over."""
+        p = self._prob
+        if p is None or p.dtype != np.uint8:
+            return
+        self._packed = (zlib.compress(p.tobytes(), 1), p.shape)  # before ``_prob`` goes: readers never see neither
+        self._prob = None
+
+    @property
+    def packed_bytes(self) -> int | None:
+        """Size of the compressed probabilities (None: not packed)."""
+        return None if self._packed is None else len(self._packed[0])
+
+    @property
     def shape(self):
-        return self.prob.shape
+        return self._packed[1] if self._prob is None else self._prob.shape
 
     @property
     def known(self) -> np.ndarray:

@@ -243,7 +243,7 @@ class RerunObserver(Observer):
             last = self._submap_logged.get(k)
             # a submap is re-sent only when the optimization moved it visibly (throttles the recording)
             grid = global_slam.matchers[k].submap.grid
-            if grid.prob.size == 0:  # released for the final solve: the final map replaces the submaps
+            if 0 in grid.shape:  # released for the final solve: the final map replaces the submaps
                 continue
             if last is None or np.hypot(*(T[:2] - last[:2])) > 0.02 or abs(T[2] - last[2]) > 0.0035:
                 rr.log(f"/world/submaps/{k}", grid_map(grid, T))
