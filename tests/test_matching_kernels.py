@@ -499,3 +499,30 @@ def test_shared_branch_and_bound_equals_the_sequential_one():
                             DeltaPenalty(w_t, w_r) if w_t else None, args[5])
             ties += int(np.count_nonzero(np.abs(ex - ex.max()) < 1e-6) > 1)
     assert ties > 50  # the order among tied poses was put to the test
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_scaled_uint8_grid_scores_and_refines_as_its_dequantized_copy(seed):
+    """``MatchGrid.scale``: a uint8 grid read with scale 1/255 gives exhaustive scores and refined
+    poses bit for bit equal to those of its ``dequantize``d float32 copy (windows across the
+    borders included), and scale 1 leaves raw uint8 scores as they were."""
+    from slam2d.grid.probability_grid import dequantize
+    from slam2d.matching.refine import refine
+
+    rng = np.random.default_rng(300 + seed)
+    q = rng.integers(0, 256, size=(60, 70)).astype(np.uint8)
+    q[20:24, 5:60] = 250  # a wall for the refinement to lock on
+    origin, res, unknown = np.array([-1.0, -0.5]), 0.05, 0.12
+    scaled = MatchGrid(q, origin, res, unknown, 1.0 / 255.0)
+    dense = MatchGrid(dequantize(q), origin, res, unknown)
+    pts = rng.uniform([-1.5, -0.8], [3.5, 3.2], size=(120, 2))
+    angles = np.linspace(-0.05, 0.05, 5)
+    for pose in ([0.3, 0.2, 0.01], [-0.9, -0.4, -0.2], [2.8, 2.6, 0.5]):
+        cells = dense.cells(pts, np.array(pose), angles)
+        np.testing.assert_array_equal(exhaustive(scaled, cells, 6), exhaustive(dense, cells, 6))
+        raw = exhaustive(MatchGrid(q, origin, res, 30.0), cells, 2)
+        np.testing.assert_allclose(raw, score_oracle(q.astype(np.float64), cells, 2, 30.0), rtol=1e-5)
+        a = refine(scaled, np.array(pose), pts, 1.0, 1.0, 1.0, 20)
+        b = refine(dense, np.array(pose), pts, 1.0, 1.0, 1.0, 20)
+        np.testing.assert_array_equal(a[0], b[0])
+        assert a[1] == b[1]

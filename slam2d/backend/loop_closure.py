@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slam2d.geometry import between
-from slam2d.grid.probability_grid import dequantize, quantize
+from slam2d.grid.probability_grid import quantize
 from slam2d.matching import _kernels
 from slam2d.matching.real_time import _covariance, unmatched_covariance
 from slam2d.matching.refine import refine
@@ -132,10 +132,10 @@ class SubmapMatcher:
 
     @property
     def prob(self) -> MatchGrid:
-        """The uint8 grid as float probabilities, for refinement and verification; made for each
-        search that needs it and dropped after (a finished submap keeps 1 byte a cell)."""
+        """The uint8 grid read as the probabilities ``dequantize`` gives, for refinement and
+        verification (``MatchGrid.scale``: no float copy of the submap is made)."""
         g = self.grid
-        return MatchGrid(dequantize(g.values), g.origin, g.resolution, self.submap.grid.unknown_probability)
+        return MatchGrid(g.values, g.origin, g.resolution, self.submap.grid.unknown_probability, 1.0 / 255.0)
 
     def match(self, points, initial, linear_window, angular_window, min_score, refine_weights,
               min_margin=0.0, margin_window=(0.6, 0.035), margin_exclusion=(0.2, 0.0175)) -> LoopMatch | None:

@@ -42,11 +42,16 @@ def rotated_cells(points, x, y, theta0, angles, ox, oy, inv_res):
 
 
 @njit(cache=True, nogil=True)
-def score_window(values, cells, w, unknown):
-    """Mean grid value for every angle and integer offset in [-w, w]²: scores[a, dy + w, dx + w]."""
+def score_window(values, cells, w, unknown, scale=1.0):
+    """Mean grid value for every angle and integer offset in [-w, w]²: scores[a, dy + w, dx + w].
+
+    ``scale`` ≠ 1: a cell's value is ``float32(values[r, c]) × float32(scale)``, exactly what the
+    grid ``dequantize``d would hold (uint8 probabilities are scored without a float copy)."""
     rows, cols = values.shape
     a_n, n = cells.shape[0], cells.shape[1]
     k = 2 * w + 1
+    scaled = scale != 1.0
+    s32 = np.float32(scale)
     out = np.zeros((a_n, k, k), dtype=np.float32)
     for a in range(a_n):
         acc = out[a]
@@ -57,8 +62,12 @@ def score_window(values, cells, w, unknown):
                 for dy in range(k):  # the whole window lies inside: branch-free rows
                     row = values[r0 + dy]
                     arow = acc[dy]
-                    for dx in range(k):
-                        arow[dx] += row[c0 + dx]
+                    if scaled:
+                        for dx in range(k):
+                            arow[dx] += np.float32(row[c0 + dx]) * s32
+                    else:
+                        for dx in range(k):
+                            arow[dx] += row[c0 + dx]
                 continue
             for dy in range(k):
                 r = r0 + dy
@@ -70,6 +79,8 @@ def score_window(values, cells, w, unknown):
                     c = c0 + dx
                     if c < 0 or c >= cols:
                         acc[dy, dx] += unknown
+                    elif scaled:
+                        acc[dy, dx] += np.float32(values[r, c]) * s32
                     else:
                         acc[dy, dx] += values[r, c]
         for dy in range(k):
@@ -141,8 +152,10 @@ def _dw(t):
 
 
 @njit(cache=True, nogil=True)
-def _bicubic(values, u, v, unknown):
+def _bicubic(values, u, v, unknown, scale=1.0):
     rows, cols = values.shape
+    scaled = scale != 1.0
+    s32 = np.float32(scale)
     uu = u - 0.5
     vv = v - 0.5
     i0 = int(math.floor(uu))
@@ -164,7 +177,7 @@ def _bicubic(values, u, v, unknown):
         for ii in range(4):
             c = i0 - 1 + ii
             if inside or (0 <= r < rows and 0 <= c < cols):
-                val = values[r, c]
+                val = np.float32(values[r, c]) * s32 if scaled else values[r, c]
             else:
                 val = unknown
             rf += wx[ii] * val
@@ -188,7 +201,8 @@ def bicubic(values, u, v, unknown, out):
 
 
 @njit(cache=True, nogil=True)
-def _normal_equations(values, ox, oy, res, unknown, points, x, y, t, x0, y0, t0, scale, w_t, w_r, h, g):
+def _normal_equations(values, ox, oy, res, unknown, points, x, y, t, x0, y0, t0, scale, w_t, w_r, h, g,
+                      value_scale=1.0):
     """Cost at (x, y, t), and the Gauss-Newton Hessian ``h`` and gradient ``g`` there (one pass over the points)."""
     c = math.cos(t)
     s = math.sin(t)
@@ -200,7 +214,7 @@ def _normal_equations(values, ox, oy, res, unknown, points, x, y, t, x0, y0, t0,
         py0 = points[i, 1]
         px = x + c * px0 - s * py0
         py = y + s * px0 + c * py0
-        f, fu, fv = _bicubic(values, (px - ox) / res, (py - oy) / res, unknown)
+        f, fu, fv = _bicubic(values, (px - ox) / res, (py - oy) / res, unknown, value_scale)
         r = scale * (1.0 - f)
         tot += r * r
         j0 = -scale * fu / res
@@ -232,7 +246,7 @@ FUNCTION_TOLERANCE = 1e-6
 
 
 @njit(cache=True, nogil=True)
-def refine_pose(values, ox, oy, res, unknown, points, x0, y0, t0, w_occ, w_t, w_r, max_iter):
+def refine_pose(values, ox, oy, res, unknown, points, x0, y0, t0, w_occ, w_t, w_r, max_iter, value_scale=1.0):
     """Levenberg-Marquardt on Σ (w_occ/√N · (1 − P(T p)))² + w_t²|t − t0|² + w_r²(θ − θ0)².
 
     Cartographer's Ceres scan matcher cost on a bicubic-interpolated probability grid. Each
@@ -250,7 +264,8 @@ def refine_pose(values, ox, oy, res, unknown, points, x0, y0, t0, w_occ, w_t, w_
     hn = np.zeros((3, 3))
     gn = np.zeros(3)
     hd = np.zeros((3, 3))
-    cost = _normal_equations(values, ox, oy, res, unknown, points, x, y, t, x0, y0, t0, scale, w_t, w_r, h, g)
+    cost = _normal_equations(values, ox, oy, res, unknown, points, x, y, t, x0, y0, t0, scale, w_t, w_r, h, g,
+                             value_scale)
     it = 0
     for it in range(max_iter):
         hd[:, :] = h
@@ -258,7 +273,8 @@ def refine_pose(values, ox, oy, res, unknown, points, x0, y0, t0, w_occ, w_t, w_
             hd[a, a] += lam * (h[a, a] + 1e-9)
         d = np.linalg.solve(hd, -g)
         nx, ny, nt = x + d[0], y + d[1], t + d[2]
-        nc = _normal_equations(values, ox, oy, res, unknown, points, nx, ny, nt, x0, y0, t0, scale, w_t, w_r, hn, gn)
+        nc = _normal_equations(values, ox, oy, res, unknown, points, nx, ny, nt, x0, y0, t0, scale, w_t, w_r, hn, gn,
+                               value_scale)
         if nc < cost:
             decrease = cost - nc
             x, y, t = nx, ny, nt

@@ -56,6 +56,9 @@ class MatchGrid:
     origin: np.ndarray  # lower-left corner of cell (0, 0)
     resolution: float
     unknown: float
+    #: exhaustive scoring and refinement read a cell as float32(value) × float32(scale): 1/255 reads a
+    #: uint8 grid as its ``dequantize``d probabilities, without the float copy (branch-and-bound ignores it)
+    scale: float = 1.0
 
     def cells(self, points, pose, angles) -> np.ndarray:
         return _kernels.rotated_cells(np.ascontiguousarray(points, dtype=np.float64), float(pose[0]), float(pose[1]),
@@ -212,7 +215,7 @@ class DeltaPenalty:
 def exhaustive(grid: MatchGrid, cells: np.ndarray, linear_cells: int, penalty: DeltaPenalty | None = None,
                angles: np.ndarray | None = None) -> np.ndarray:
     """All scores, (A, 2w+1, 2w+1) indexed [angle, dy + w, dx + w] (times the penalty when given)."""
-    scores = _kernels.score_window(grid.values, cells, linear_cells, np.float32(grid.unknown))
+    scores = _kernels.score_window(grid.values, cells, linear_cells, np.float32(grid.unknown), float(grid.scale))
     if penalty is not None:
         _kernels.apply_delta_penalty(scores, np.ascontiguousarray(angles, dtype=np.float64),
                                      float(penalty.translation_weight), float(penalty.rotation_weight),
