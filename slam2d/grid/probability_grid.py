@@ -92,7 +92,8 @@ class ProbabilityGrid:
         p = self._prob
         if p is None or p.dtype != np.uint8:
             return
-        self._packed = (zlib.compress(p.tobytes(), 1), p.shape)  # before ``_prob`` goes: readers never see neither
+        # set before ``_prob`` goes, so a reader on another thread always finds one of the two
+        self._packed = (zlib.compress(p.tobytes(), 1), p.shape)
         self._prob = None
 
     @property
