@@ -61,16 +61,4 @@ def adaptive_voxel_filter(points: np.ndarray, min_points: int, max_length: float
     is 0). Matching costs time in proportion to the points."""
     if min_points <= 0 or len(points) <= min_points:
         return points
-    return points[adaptive_voxel_filter_index(points, min_points, max_length)]
-
-
-def adaptive_voxel_filter_index(points: np.ndarray, min_points: int, max_length: float) -> np.ndarray:
-    """The indices (increasing) of the points ``adaptive_voxel_filter`` keeps."""
-    if min_points <= 0 or len(points) <= min_points:
-        return np.arange(len(points))
-    return _kernels.adaptive_voxel_indices(points, int(min_points), float(max_length))
-
-
-def compact_index(index: np.ndarray, n: int) -> np.ndarray:
-    """Indices into ``n`` points in the smallest integer type that holds them (kept per scan)."""
-    return index.astype(np.uint16 if n <= 1 << 16 else np.int64)
+    return points[_kernels.adaptive_voxel_indices(points, int(min_points), float(max_length))]

@@ -35,7 +35,6 @@ from slam2d.geometry import between, compose
 from slam2d.grid.map_builder import build_map
 from slam2d.grid.probability_grid import ProbabilityGrid
 from slam2d.observer import Observer
-from slam2d.range_data import compact_index
 from slam2d.types import Estimate, Node, Scan
 
 MODES = ("global", "local", "odometry")
@@ -327,7 +326,7 @@ def _kept_points(res) -> np.ndarray | None:
     if res.points is None:
         return None
     if res.inserted and res.point_index is not None:
-        return compact_index(res.point_index, len(res.range_data.hits))
+        return res.point_index.astype(np.uint16 if len(res.range_data.hits) <= 1 << 16 else np.int64)
     return res.points.astype(np.float32)
 
 

@@ -177,10 +177,10 @@ def test_adaptive_voxel_filter_matches_oracle(seed):
 
 
 @pytest.mark.parametrize("seed", range(4))
-def test_filter_indices_pick_the_filters_points(seed):
-    """``voxel_filter_index`` and ``adaptive_voxel_filter_index`` name (increasing) exactly the points
-    their filters return, also when the filter keeps everything (size 0, few points, no points)."""
-    from slam2d.range_data import adaptive_voxel_filter_index, voxel_filter_index
+def test_voxel_filter_index_picks_the_filters_points(seed):
+    """``voxel_filter_index`` names (increasing) exactly the points ``voxel_filter`` returns, also
+    when the filter keeps everything (size 0, few points, no points)."""
+    from slam2d.range_data import voxel_filter_index
 
     rng = np.random.default_rng(seed)
     for pts in (rng.uniform(-20, 20, (400, 2)), rng.normal(0, 0.01, (30, 2)), np.zeros((0, 2))):
@@ -188,7 +188,3 @@ def test_filter_indices_pick_the_filters_points(seed):
             idx = voxel_filter_index(pts, size)
             assert np.all(np.diff(idx) > 0)
             np.testing.assert_array_equal(pts[idx], voxel_filter(pts, size))
-        for min_points, max_length in ((0, 0.9), (100, 0.9), (1000, 0.5)):
-            idx = adaptive_voxel_filter_index(pts, min_points, max_length)
-            assert np.all(np.diff(idx) > 0)
-            np.testing.assert_array_equal(pts[idx], adaptive_voxel_filter(pts, min_points, max_length))
