@@ -35,6 +35,7 @@ from slam2d.matching.refine import refine
 from slam2d.matching.search import SearchParameters, angular_step
 from slam2d.motion_filter import MotionFilter
 from slam2d.range_data import range_data, voxel_filter_index
+from slam2d.threads import CallerCores
 
 log = logging.getLogger(__name__)
 
@@ -158,6 +159,7 @@ class LocalSlam:
         self.num_recovery_searches = 0
         self.num_recovered = 0
         self.num_untrusted = 0
+        self.cores = CallerCores()  # who else wants the cores (``Slam`` sets it when global SLAM runs beside)
         self.num_forced = 0
         self.num_degenerate = 0
         self.num_weak = 0
@@ -277,7 +279,8 @@ class LocalSlam:
                 w = self.wide_matcher
                 floor = 0.0 if m is None or limit is None else self._recovery_floor(
                     limit, SearchParameters.make(w.linear_window, w.angular_window, grid.resolution, points))
-                wide = self._recover(grid, scan, predicted, points, limit, floor)
+                with self.cores.share():
+                    wide = self._recover(grid, scan, predicted, points, limit, floor)
                 timings["recovery"] = (time.perf_counter() - t_rec) * 1e3
                 self.num_recovery_searches += 1
                 # a recovered pose replaces the match only when it is trusted where the match was not:
@@ -345,7 +348,8 @@ class LocalSlam:
         if inserted:
             t3 = time.perf_counter()
             local = rd.transformed(pose)
-            finished = self.submaps.insert(pose, local.origin, local.hits, local.misses, scan.index)
+            with self.cores.share():
+                finished = self.submaps.insert(pose, local.origin, local.hits, local.misses, scan.index)
             inserted_into = self.submaps.last_inserted_into
             if quality == "trusted":
                 kept_match = match

@@ -25,7 +25,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
 
-import numba
 import numpy as np
 
 from slam2d.allocator import map_large_blocks, return_freed_memory
@@ -122,6 +121,8 @@ class Slam:
                 from slam2d.backend.background import Background
 
                 self._background = Background()
+                # local SLAM's parallel kernels leave the second core to the worker while it works
+                self.tracker.cores.busy = lambda b=self._background: not b.idle()
         self._stamps: list[str] = []
         self._times: list[float] = []
         self._local: list[np.ndarray] = []
@@ -160,17 +161,7 @@ class Slam:
         if scan.index != i:  # node ids are input positions
             scan = dataclasses.replace(scan, index=i)
         t0 = time.perf_counter()
-        if self._background is not None and not self._background.idle():
-            # the second core is global SLAM's now: a parallel kernel on both would wait at its
-            # barrier for a thread the OS has descheduled (outputs are the same with any thread count)
-            threads = numba.get_num_threads()
-            numba.set_num_threads(1)
-            try:
-                res = self.tracker.add_scan(scan)
-            finally:
-                numba.set_num_threads(threads)
-        else:
-            res = self.tracker.add_scan(scan)
+        res = self.tracker.add_scan(scan)
         self._stage("frontend", (time.perf_counter() - t0) * 1e3)
         for k, v in res.timings.items():
             self._stage(k, v)

@@ -5,6 +5,8 @@ computed on its own, so how the items are split changes no result.
 """
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 import numpy as np
 
 
@@ -25,4 +27,30 @@ def in_threads(fn, n: int) -> None:
             f.result()
 
 
-__all__ = ["in_threads"]
+class CallerCores:
+    """The numba threads a caller's parallel kernels may use at this moment: all of them, or one
+    while ``busy()`` says another thread of the process is working (global SLAM's worker has the
+    second core then, and a parallel kernel would wait at its barrier for a thread the OS has
+    descheduled). Asked right before each such kernel, not once per scan: the worker often
+    finishes a node while local SLAM matches the next scan. Kernels give the same results on
+    any number of threads, so this changes timings only."""
+
+    def __init__(self, busy=None):
+        self.busy = busy
+
+    @contextmanager
+    def share(self):
+        if self.busy is None or not self.busy():
+            yield
+            return
+        import numba
+
+        n = numba.get_num_threads()
+        numba.set_num_threads(1)
+        try:
+            yield
+        finally:
+            numba.set_num_threads(n)
+
+
+__all__ = ["CallerCores", "in_threads"]

@@ -104,3 +104,28 @@ def test_the_worker_uses_every_numba_thread_only_while_the_caller_waits():
         threading.Timer(0.3, gate.set).start()
         finish()
     assert seen == [1, numba.get_num_threads(), numba.get_num_threads()]
+
+
+def test_caller_cores_leave_one_thread_only_while_the_worker_is_busy():
+    """Local SLAM's parallel kernels ask right before they run: one numba thread while global SLAM's
+    worker is busy, all of them otherwise, and the count is restored afterwards (also on an error)."""
+    import numba
+
+    from slam2d.threads import CallerCores
+
+    n = numba.get_num_threads()
+    busy = [True]
+    cores = CallerCores(lambda: busy[0])
+    with cores.share():
+        assert numba.get_num_threads() == 1
+    assert numba.get_num_threads() == n
+    busy[0] = False
+    with cores.share():
+        assert numba.get_num_threads() == n
+    busy[0] = True
+    with pytest.raises(RuntimeError):
+        with cores.share():
+            raise RuntimeError("kernel failed")
+    assert numba.get_num_threads() == n
+    with CallerCores().share():  # nobody else: all threads
+        assert numba.get_num_threads() == n
