@@ -300,6 +300,9 @@ def test_loops_ground_truth_of_the_simulator(tmp_path):
     g = json.loads(r.stdout)["ground_truth"]
     assert g["matching"] == "mcap_scan_index" and g["matched_scans"] == json.loads((run / "summary.json").read_text())["scans"]
     assert g["final_graph"]["unknown"] == 0 and g["recall"]["episodes"] >= 1
+    # every constraint the ground truth calls false is put to the raw scans (the log read again)
+    fb = g["final_graph"]["false_by_scans"]
+    assert set(fb) == {"constraint", "ground_truth", "undecided"} and sum(fb.values()) == g["final_graph"]["false"]
 
 
 def test_loops_on_a_run_whose_stamps_go_back_and_repeat(tmp_path):

@@ -96,24 +96,27 @@ def degraded_table(rows) -> str:
 
 def sparse_table(rows) -> str:
     target = TARGETS["sparse_ate_rmse_m"]
-    lines = [f"| dataset (sparse) | system | scans | wall s | peak RSS MB | ATE RMSE m | target ≤ {target} m | met | loops accepted / final / searched | loop precision vs ground truth, final graph (all accepted) | recall (revisit episodes closed) | health |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [f"| dataset (sparse) | system | scans | wall s | peak RSS MB | ATE RMSE m | target ≤ {target} m | met | loops accepted / final / searched | loop precision vs ground truth, final graph (all accepted) | its misses, by the raw scans: loop right / truth right / undecided | recall (revisit episodes closed) | health |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
         n, s = row["dataset"], row["slam2d"]
         rmse = s["ate"]["trans_m"]["rmse"]
         g = s.get("loops_vs_ground_truth")
-        prec = rec = "—"
+        prec = rec = by_scans = "—"
         if g:
             prec = f"{_pct(g['final_graph'])} ({_pct(g['accepted'])})"
+            b = g["final_graph"].get("false_by_scans")
+            if b is not None:
+                by_scans = f"{b['constraint']} / {b['ground_truth']} / {b['undecided']}"
             rc = g["recall"]
             rec = f"{rc['closed']} of {rc['episodes']}"
         lines.append(f"| {n} | slam2d ({s['mode']}) | {s['scans']} | {s['wall_s']:.1f} | {s['peak_rss_mb']:.0f} | "
-                     f"{rmse:.3f} | ≤ {target} | {_met(rmse <= target)} | {loops_txt(s)} | {prec} | {rec} | {health_txt(s)} |")
+                     f"{rmse:.3f} | ≤ {target} | {_met(rmse <= target)} | {loops_txt(s)} | {prec} | {by_scans} | {rec} | {health_txt(s)} |")
         k = row.get("karto", {})
         if "ate" in k:
             kr = k["ate"]["trans_m"]["rmse"]
             lines.append(f"| {n} | Karto peer (sequential) | {s['scans']} | {k['wall_s']:.1f} | {k['peak_rss_mb']:.0f} | "
-                         f"{kr:.3f} | ≤ {target} | {_met(kr <= target)} | — | — | — | |")
+                         f"{kr:.3f} | ≤ {target} | {_met(kr <= target)} | — | — | — | — | |")
     return "\n".join(lines)
 
 

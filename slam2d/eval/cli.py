@@ -146,6 +146,11 @@ def _loops(args) -> int:
                                                        args.tolerance_rot, th)}
         key = "true_gt"
         out["score_histogram"] = score_histogram(constraints, key)
+        from slam2d.eval.scan_check import check_run
+
+        checked = check_run(run_dir, constraints, poses, gt.poses, args.run_input)
+        if checked is not None:  # where the ground truth calls a constraint false, which side the scans take
+            out["ground_truth"]["final_graph"]["false_by_scans"] = checked
     plot_dir = Path(args.plot_dir) if args.plot_dir else run_dir
     plot_loops(plot_dir / "loops_on_map.png", run_dir, poses, constraints, key)
     plot_score_histogram(plot_dir / "loop_scores.png", out["score_histogram"], "loop-closure scores")

@@ -10,7 +10,10 @@ scan's frame, ``score``, ``accepted``, optionally ``in_final_graph``) is classif
     few-centimetre error).
 
 (c) against a ground truth independent of the run (``--ground-truth``: the simulator's, or the
-    ``.gt.txt`` of ``make_sparse.py``): true within a tolerance, by default 0.3 m and 2°.
+    ``.gt.txt`` of ``make_sparse.py``): true within a tolerance, by default 0.3 m and 2°. A ground
+    truth that is another SLAM solution has errors of its own, so each constraint of the final graph
+    it calls false is also put to the raw scans (``scan_check.py``: do the two passes line up as the
+    constraint places them, or as the ground truth does?), counted in ``false_by_scans``.
 
 Recall counts revisit episodes of the reference (or ground truth) — runs of reference scans that come back
 within ``revisit_distance`` of a place passed more than ``min_loop_travel`` metres of path
