@@ -209,6 +209,8 @@ def cmd_info(args) -> int:
     facts = getattr(source, "facts", None)
     if callable(facts):  # CARMEN: what the first pass decided about no-return readings, and why
         f = facts()
+        info["laser_messages"] = f.laser_messages
+        info["odometry_from"] = f.odometry
         info["no_return_threshold_m"] = f.no_return_value
         info["no_return_evidence"] = f.no_return_evidence
     if args.json:

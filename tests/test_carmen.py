@@ -201,6 +201,12 @@ BAD = {
     "time backwards": ("FLASER 1 1.0 0 0 0 0 0 0 100.0 nohost 0.1\nFLASER 1 1.0 0 0 0 0 0 0 90.0 nohost 0.2\n", 2,
                        "goes back"),
     "bad odom": ("ODOM 1 2\nFLASER 1 1.0 0 0 0 0 0 0 100.0 nohost 0.1\n", 1, "truncated ODOM"),
+    "rawlaser count mismatch": ("RAWLASER1 0 -1.5 3.0 0.5 30.0 0.01 0 4 1 2 3 0 100.0 nohost 0.1\n", 1,
+                                "remission count must be an integer, found '100.0'"),
+    "rawlaser truncated": ("RAWLASER1 0 -1.5 3.0 0.5 30.0 0.01 0 4 1 2\n", 1,
+                           "RAWLASER1 declares 4 readings but the line is truncated"),
+    "rawlaser extra fields": ("RAWLASER1 0 -1.5 3.0 0.5 30.0 0.01 0 2 1 2 0 100.0 nohost 0.1 x y\n", 1,
+                              "needs 13..15 fields"),
     "empty": ("", None, "no laser scans"),
     "comments only": ("# nothing\nPARAM a b\n", None, "no laser scans"),
 }
@@ -310,3 +316,68 @@ def test_packed_records_give_back_exactly_what_was_parsed():
         assert (q.intensities is None) == (p.intensities is None)
         if p.intensities is not None:
             assert q.intensities.dtype == np.float32 and np.array_equal(q.intensities, p.intensities)
+
+
+def _rawlaser(ranges, ts, start=-math.pi / 2, res=math.pi / 4, kind="RAWLASER1"):
+    r = " ".join(f"{v}" for v in ranges)
+    return f"{kind} 0 {start!r} {math.pi!r} {res!r} 30.0 0.01 0 {len(ranges)} {r} 0 {ts} nohost 0.5\n"
+
+
+def test_rawlaser_with_odom_reads_as_the_flaser_log_of_the_same_scans(tmp_path, flaser_line):
+    """A log of RAWLASER1 and ODOM lines (no laser message with a pose) is read with the robot pose
+    of the ODOM lines: where they are stamped like the scans, the scans are those of the FLASER log
+    that holds the same readings and poses (laser at the robot's origin)."""
+    rng = np.random.default_rng(0)
+    poses = [(0.1 * k, 0.05 * k, 0.2 * k - 1.0) for k in range(6)]
+    ranges = [np.round(rng.uniform(0.5, 9.0, 5), 2) for _ in poses]
+    fl, raw = "", ""
+    for k, (pose, r) in enumerate(zip(poses, ranges)):
+        ts = f"{100 + 0.2 * k:.6f}"
+        fl += flaser_line(list(r), pose=pose, ts=ts)
+        raw += f"ODOM {pose[0]:.6f} {pose[1]:.6f} {pose[2]:.6f} 0 0 0 {ts} nohost 0.5\n" + _rawlaser(list(r), ts)
+    a = list(CarmenLog(write(tmp_path, raw, "raw.clf")))
+    b = list(CarmenLog(write(tmp_path, fl, "fl.clf")))
+    assert len(a) == len(b) == 6
+    for x, y in zip(a, b):
+        assert x.timestamp_text == y.timestamp_text
+        np.testing.assert_array_equal(x.ranges, y.ranges)
+        np.testing.assert_array_equal(x.valid, y.valid)
+        np.testing.assert_allclose(x.odom_pose, y.odom_pose, atol=1e-12)
+        np.testing.assert_array_equal(x.laser_offset, np.zeros(3))
+        assert x.angle_min == y.angle_min and x.angle_increment == y.angle_increment
+    f = CarmenLog(tmp_path / "raw.clf").facts()
+    assert f.laser_messages == "RAWLASER1" and "ODOM" in f.odometry
+
+
+def test_rawlaser_odometry_is_interpolated_and_held_at_the_ends(tmp_path):
+    text = ("ODOM 0 0 3.0 0 0 0 10.0 nohost 0\n"
+            "ODOM 1 2 -3.0 0 0 0 11.0 nohost 0\n")  # θ crosses ±π: the short way is +0.28 rad
+    text += "".join(_rawlaser([1.0, 2.0, 3.0], ts) for ts in ("9.5", "10.25", "10.5", "12.0"))
+    scans = list(CarmenLog(write(tmp_path, text)))
+    np.testing.assert_allclose(scans[0].odom_pose, [0, 0, 3.0])  # before the first ODOM: held
+    short = math.remainder(-3.0 - 3.0, 2 * math.pi)
+    np.testing.assert_allclose(scans[1].odom_pose, [0.25, 0.5, math.remainder(3.0 + 0.25 * short, 2 * math.pi)])
+    np.testing.assert_allclose(scans[2].odom_pose, [0.5, 1.0, math.remainder(3.0 + 0.5 * short, 2 * math.pi)])
+    np.testing.assert_allclose(scans[3].odom_pose, [1, 2, -3.0])  # after the last: held
+    # no ODOM lines: scans without odometry
+    bare = list(CarmenLog(write(tmp_path, _rawlaser([1.0, 2.0], "5.0") + _rawlaser([1.0, 2.0], "5.1"), "bare.clf")))
+    assert len(bare) == 2 and all(s.odom_pose is None for s in bare)
+    assert "none" in CarmenLog(tmp_path / "bare.clf").facts().odometry
+
+
+def test_rawlaser_lines_beside_laser_lines_with_poses_are_skipped(tmp_path, flaser_line):
+    """A log holds RAWLASER1 and FLASER lines for the same scans when the robot module ran: the
+    FLASER lines are read, once each."""
+    text = ""
+    for k in range(4):
+        ts = f"{50 + 0.1 * k:.6f}"
+        text += _rawlaser([1.0, 2.0, 3.0], ts) + flaser_line([1.0, 2.0, 3.0], pose=(0.1 * k, 0, 0), ts=ts)
+    log = CarmenLog(write(tmp_path, text))
+    assert len(list(log)) == 4 and log.facts().laser_messages == "FLASER"
+
+
+def test_of_several_raw_lasers_the_one_with_the_most_lines_is_read(tmp_path):
+    text = "".join(_rawlaser([1.0, 2.0], f"{k}.0", kind="RAWLASER1") for k in range(2))
+    text += "".join(_rawlaser([4.0, 5.0, 6.0], f"{k}.5", kind="RAWLASER2") for k in range(5))
+    scans = list(CarmenLog(write(tmp_path, text)))
+    assert len(scans) == 5 and all(s.num_beams == 3 for s in scans)

@@ -9,8 +9,15 @@ Message formats (CARMEN 0.7 logger):
 * ``ROBOTLASER1 type start_angle fov resolution max_range accuracy remission_mode n r1..rn
   m i1..im laser_x laser_y laser_theta robot_x robot_y robot_theta tv rv fwd side turn
   ipc_ts host logger_ts``.
+* ``RAWLASER1`` … ``RAWLASER4 type start_angle fov resolution max_range accuracy remission_mode n
+  r1..rn m i1..im ipc_ts host logger_ts``: a laser without a pose. Read only when the log holds
+  none of the messages above (a log holds both for the same scans when the robot module ran),
+  then from the one laser with the most lines; the robot pose at each scan is the ``ODOM``
+  pose interpolated at its timestamp (held at the first / last ``ODOM`` before / after them; no
+  ``ODOM``: no odometry), and the laser is taken to sit at the robot's origin (the line carries no
+  mount, and the ``robot_*laser_offset`` parameters disagree with the mounts of the Freiburg logs).
 * ``ODOM x y theta tv rv accel ipc_ts host logger_ts``, ``PARAM name value ...``, ``#`` comments;
-  other messages (RAWLASER*, TRUEPOS, NEFF, SYNC, ...) are skipped.
+  other messages (TRUEPOS, NEFF, SYNC, ...) are skipped.
 
 The scan timestamp is ``ipc_ts`` (the Freiburg benchmark relations use it). Readings at
 or above the sensor's no-return threshold are flagged invalid and never become hits. The
@@ -56,6 +63,9 @@ SPIKE_RATIO = 20.0
 SPIKE_NEIGHBOURHOOD = 1.0
 
 _LASER_TYPES = ("FLASER", "RLASER", "ROBOTLASER1")
+#: lasers without a pose, read when a log holds none of ``_LASER_TYPES`` (module docstring)
+_RAW_TYPES = ("RAWLASER1", "RAWLASER2", "RAWLASER3", "RAWLASER4")
+_KINDS = _LASER_TYPES + _RAW_TYPES
 #: parsed laser records beyond this many bytes go to a temporary file (``_RecordStore``)
 RECORD_MEMORY_BUDGET = 256 * 1024 * 1024
 
@@ -93,7 +103,7 @@ class _Block:
         self.scalars.extend((p.timestamp, p.angle_min, p.angle_increment, *map(float, p.laser_pose),
                              *map(float, p.robot_pose), math.nan if p.max_range is None else p.max_range))
         self.lineno.append(lineno)
-        self.kind.append(_LASER_TYPES.index(p.kind))
+        self.kind.append(_KINDS.index(p.kind))
         self.text += p.timestamp_text.encode()
         self.text_end.append(len(self.text))
 
@@ -105,7 +115,7 @@ class _Block:
         inten = None if i0 < 0 else np.frombuffer(self.intensities, dtype=np.float32, count=n, offset=4 * i0).copy()
         v = self.scalars[_SCALARS * i:_SCALARS * (i + 1)]
         t0 = self.text_end[i - 1] if i else 0
-        return self.lineno[i], _Parsed(_LASER_TYPES[self.kind[i]], v[0], self.text[t0:self.text_end[i]].decode(), ranges,
+        return self.lineno[i], _Parsed(_KINDS[self.kind[i]], v[0], self.text[t0:self.text_end[i]].decode(), ranges,
                                        v[1], v[2], np.array(v[3:6]), np.array(v[6:9]),
                                        None if math.isnan(v[9]) else v[9], inten)
 
@@ -247,12 +257,35 @@ class NoReturnSurvey:
         return out
 
 
+def odom_at(odom: np.ndarray, t: float) -> np.ndarray | None:
+    """The robot pose at time ``t`` from ``ODOM`` rows (timestamp, x, y, θ) sorted by time: linear
+    between the two around it (θ along the shorter arc), the first / last pose before / after
+    them; None without any."""
+    if len(odom) == 0:
+        return None
+    k = int(np.searchsorted(odom[:, 0], t, side="right"))
+    if k == 0:
+        return odom[0, 1:].copy()
+    if k == len(odom):
+        return odom[-1, 1:].copy()
+    (t0, x0, y0, a0), (t1, x1, y1, a1) = odom[k - 1], odom[k]
+    u = 0.0 if t1 <= t0 else (t - t0) / (t1 - t0)
+    return np.array([x0 + u * (x1 - x0), y0 + u * (y1 - y0), math.remainder(a0 + u * math.remainder(a1 - a0, 2 * math.pi),
+                                                                               2 * math.pi)])
+
+
 @dataclass
 class CarmenFacts:
     """What a first pass over the log learns."""
 
     num_scans: int = 0
     num_odom: int = 0
+    #: the laser message read (``FLASER``/``RLASER``/``ROBOTLASER1`` lines carry poses; a
+    #: ``RAWLASERn`` is read only in a log without them) and where the robot pose comes from
+    laser_messages: str = ""
+    odometry: str = "the pose fields of the laser lines"
+    #: ``ODOM`` (timestamp, x, y, θ), kept to interpolate the robot pose of ``RAWLASERn`` scans
+    odom: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
     num_readings: int = 0
     line_max_range: float | None = None
     params: dict = field(default_factory=dict)
@@ -268,7 +301,7 @@ class CarmenFacts:
         out = [dict(s, why="a repeated reading near the log's maximum (a spike over the readings around it)")
                for s in self.survey.spikes(self.num_readings)]
         if self.line_max_range is not None:
-            out.append({"value": self.line_max_range, "why": "the max_range field of the ROBOTLASER1 lines"})
+            out.append({"value": self.line_max_range, "why": f"the max_range field of the {self.laser_messages} lines"})
         return out
 
     @property
@@ -331,27 +364,31 @@ def _parse_laser(path, lineno, parts) -> _Parsed:
         a0, da = flaser_geometry(n)
         return _Parsed(kind, tail[6], parts[2 + n + 6], ranges, a0, da,
                        np.array(tail[0:3]), np.array(tail[3:6]), None)
-    # ROBOTLASER1
+    # ROBOTLASER1 and RAWLASERn share the header; RAWLASERn has no pose fields
     if len(parts) < 9:
-        raise InputError(path, "truncated ROBOTLASER1 line", line=lineno)
+        raise InputError(path, f"truncated {kind} line", line=lineno)
     head = _floats(path, lineno, parts[2:8], "ROBOTLASER1 header field")
     start, _fov, res, max_range = head[0], head[1], head[2], head[3]
     n = _int(path, lineno, parts[8], "beam count")
     if n <= 0:
         raise InputError(path, f"beam count must be positive, found {n}", line=lineno)
     if len(parts) < 9 + n + 1:
-        raise InputError(path, f"ROBOTLASER1 declares {n} readings but the line is truncated", line=lineno)
+        raise InputError(path, f"{kind} declares {n} readings but the line is truncated", line=lineno)
     ranges = np.array(_floats(path, lineno, parts[9:9 + n], "range reading"), dtype=np.float64)
     m = _int(path, lineno, parts[9 + n], "remission count")
     base = 10 + n + m
-    need = base + 12
+    fields = 1 if kind in _RAW_TYPES else 12  # ipc_ts; or laser pose, robot pose, 5 velocities/safety, ipc_ts
+    need = base + fields
     if m < 0 or len(parts) < need or len(parts) > need + 2:
-        raise InputError(path, f"ROBOTLASER1 with {n} readings and {m} remissions needs {need}..{need + 2} fields; "
+        raise InputError(path, f"{kind} with {n} readings and {m} remissions needs {need}..{need + 2} fields; "
                          f"the line has {len(parts)}", line=lineno)
     rem = np.array(_floats(path, lineno, parts[10 + n:base], "remission"), dtype=np.float32) if m == n else None
-    tail = _floats(path, lineno, parts[base:base + 12], "pose/timestamp field")
+    tail = _floats(path, lineno, parts[base:base + fields], "pose/timestamp field")
     if not (res > 0 and math.isfinite(res)):
         raise InputError(path, f"angular resolution must be positive, found {res}", line=lineno)
+    if kind in _RAW_TYPES:  # the robot pose comes from the ODOM lines (``CarmenLog._to_scan``)
+        return _Parsed(kind, tail[0], parts[base], ranges, start, res, np.full(3, np.nan), np.full(3, np.nan),
+                       max_range if max_range > 0 else None, rem)
     return _Parsed(kind, tail[11], parts[base + 11], ranges, start, res, np.array(tail[0:3]),
                    np.array(tail[3:6]), max_range if max_range > 0 else None, rem)
 
@@ -375,19 +412,31 @@ class CarmenLog:
             self._facts = self._survey()
         return self._facts
 
-    def _survey(self) -> CarmenFacts:
+    def _survey(self, raw: str | None = None) -> CarmenFacts:
+        """The first pass. ``raw``: read that ``RAWLASERn`` message as the laser (a second survey,
+        made when the first found no laser message with a pose)."""
         f = CarmenFacts()
         spool = _RecordStore()
+        raw_counts = dict.fromkeys(_RAW_TYPES, 0)
+        kinds = set()
+        odom = array("d")
         for lineno, kind, parts in self._records():
             if kind == "PARAM":
                 if len(parts) >= 3:
                     f.params[parts[1]] = parts[2]
                 continue
             if kind == "ODOM":
-                self._parse_odom(lineno, parts)
+                odom.extend(self._parse_odom(lineno, parts))
                 f.num_odom += 1
                 continue
+            if kind in _RAW_TYPES:
+                raw_counts[kind] += 1
+                if kind != raw:
+                    continue
+            elif raw is not None:
+                continue
             p = _parse_laser(self.path, lineno, parts)
+            kinds.add(kind)
             spool.append(lineno, p)
             f.num_scans += 1
             f.num_readings += p.ranges.size
@@ -396,7 +445,19 @@ class CarmenLog:
             f.survey.add(p.ranges)
         if f.num_scans == 0:
             spool.close()
-            raise InputError(self.path, "no laser scans (FLASER, RLASER or ROBOTLASER1 lines) in the file")
+            best = max(_RAW_TYPES, key=lambda k: raw_counts[k])  # the first of the most frequent
+            if raw is None and raw_counts[best]:
+                return self._survey(best)
+            raise InputError(self.path, "no laser scans (FLASER, RLASER, ROBOTLASER1 or RAWLASER1-4 lines) in the file")
+        f.laser_messages = ", ".join(k for k in _KINDS if k in kinds)
+        if raw is not None:
+            o = np.frombuffer(odom, dtype=np.float64).reshape(-1, 7)
+            f.odom = np.ascontiguousarray(o[np.argsort(o[:, 6], kind="stable")][:, [6, 0, 1, 2]])
+            f.odometry = ("the ODOM lines, interpolated at each scan's timestamp" if len(f.odom) else
+                          "none (no ODOM lines beside the RAWLASER lines)")
+            others = [f"{k} ({raw_counts[k]} lines)" for k in _RAW_TYPES if k != raw and raw_counts[k]]
+            if others:
+                log.info("%s: reading %s, the laser with the most lines; skipping %s", self.path, raw, ", ".join(others))
         self._spool = spool
         return f
 
@@ -416,7 +477,7 @@ class CarmenLog:
             if not parts or parts[0].startswith("#"):
                 continue
             kind = parts[0]
-            if kind in _LASER_TYPES or kind in ("ODOM", "PARAM"):
+            if kind in _KINDS or kind in ("ODOM", "PARAM"):
                 yield lineno, kind, parts
 
     def _parse_odom(self, lineno, parts):
@@ -433,6 +494,8 @@ class CarmenLog:
         no_return = facts.no_return_value
         prev_t = None
         for index, (lineno, p) in enumerate(self._laser_records()):
+            if p.kind in _RAW_TYPES:  # no pose in the line: the robot's from the ODOM lines, the laser at its origin
+                p.robot_pose = p.laser_pose = odom_at(facts.odom, p.timestamp)
             yield self._to_scan(p, lineno, index, no_return, prev_t)
             prev_t = p.timestamp if prev_t is None else max(prev_t, p.timestamp)
 
@@ -443,7 +506,7 @@ class CarmenLog:
         if prev_t is not None and p.timestamp < prev_t - MAX_TIME_REVERSAL:
             raise InputError(path, f"timestamp {p.timestamp_text} goes back {prev_t - p.timestamp:.3f} s "
                              f"(more than {MAX_TIME_REVERSAL} s) behind an earlier scan", line=lineno)
-        if not (np.all(np.isfinite(p.laser_pose)) and np.all(np.isfinite(p.robot_pose))):
+        if p.robot_pose is not None and not (np.all(np.isfinite(p.laser_pose)) and np.all(np.isfinite(p.robot_pose))):
             raise InputError(path, "pose field is not finite", line=lineno)
         r = p.ranges
         valid = np.empty(r.shape, dtype=np.bool_)
@@ -467,5 +530,5 @@ class CarmenLog:
             index=index,
             intensities=p.intensities,
             odom_pose=p.robot_pose,
-            laser_offset=between(p.robot_pose, p.laser_pose),
+            laser_offset=np.zeros(3) if p.robot_pose is None else between(p.robot_pose, p.laser_pose),
         )
