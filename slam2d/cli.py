@@ -60,6 +60,8 @@ def build_parser() -> argparse.ArgumentParser:
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--odometry-only", action="store_true", help="no scan matching: poses are the wheel odometry")
     mode.add_argument("--no-loop-closure", action="store_true", help="local SLAM only (no global optimization)")
+    p.add_argument("--no-odometry", action="store_true",
+                   help="ignore the input's wheel odometry (predict from the recent matches' velocity)")
     p.add_argument("--max-scans", type=int, default=None, help="stop after this many scans")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--rerun", metavar="RRD", default=None, help="write a Rerun recording of the whole run to this .rrd")
@@ -130,6 +132,10 @@ def cmd_run(args) -> int:
     from slam2d.slam import Slam
 
     cfg = load_config(args.config)
+    if args.no_odometry:
+        if args.odometry_only:
+            raise UsageError("--no-odometry and --odometry-only exclude each other")
+        cfg.real_time_matcher.use_odometry = False
     if args.max_scans is not None and args.max_scans <= 0:
         raise UsageError("--max-scans must be positive")
     if args.rate is not None and not args.rate > 0:

@@ -80,6 +80,7 @@ class RealTimeMatcherConfig(_Section):
     branch_depth: int = Field(0, ge=0, le=6, description="Levels of the coarse-to-fine search (0 = exhaustive); results equal the exhaustive search on the same lattice.")
     translation_delta_cost_weight: float = Field(0.1, ge=0.0, description="Scores are multiplied by exp(-(w_t·|Δt| + w_r·|Δθ|)²): prefers the predicted pose where the scan alone cannot decide (Cartographer's default 0.1).")
     rotation_delta_cost_weight: float = Field(0.1, ge=0.0, description="w_r of the same penalty [per rad].")
+    use_odometry: bool = Field(True, description="Predict each scan's pose from the input's wheel odometry where it has one; false: from the velocity of the recent trusted matches, as for an input without odometry (slam2d run --no-odometry).")
 
 
 class RefineConfig(_Section):

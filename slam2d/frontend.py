@@ -45,14 +45,30 @@ RECENT_SCORES = 50
 MIN_SCORES_FOR_TRUST = 10
 
 
+#: the velocity is measured over at least this share of the log's typical scan period ...
+VELOCITY_MIN_SPAN = 0.5
+#: ... the typical period being the mean of this many recent ones; and the poses it may reach back to
+VELOCITY_HISTORY = 16
+
+
 class PoseExtrapolator:
-    """Predicts the next local pose from odometry increments, or from the last velocity."""
+    """Predicts the next local pose from odometry increments, or from the recent velocity.
+
+    The velocity (Cartographer's ``PoseExtrapolator`` without odometry) is the motion between the
+    newest trusted pose and the most recent earlier one at least ``VELOCITY_MIN_SPAN`` of the
+    typical scan period before it, over the time between them: logs carry scans stamped a
+    millisecond apart (Intel: bursts, reordered and repeated stamps), and the motion between two
+    such scans is matching noise divided by almost nothing, which constant-velocity prediction
+    would carry metres into the next scan. Poses that are not trusted matches leave the velocity
+    as it was (``add``)."""
 
     def __init__(self):
         self.last_pose = None
         self.last_time = None
         self.last_odom = None
         self.velocity = np.zeros(3)  # in the robot frame, per second
+        self._history: deque = deque(maxlen=VELOCITY_HISTORY)  # (time, pose), oldest first
+        self._periods: deque = deque(maxlen=VELOCITY_HISTORY)
 
     def predict(self, time_s, odom):
         if self.last_pose is None:
@@ -68,10 +84,24 @@ class PoseExtrapolator:
             return np.zeros(3)
         return between(self.last_pose, predicted)
 
-    def add(self, time_s, pose, odom):
-        if self.last_pose is not None and time_s > self.last_time:
-            self.velocity = between(self.last_pose, pose) / (time_s - self.last_time)
-        self.last_pose, self.last_time, self.last_odom = np.asarray(pose, dtype=float), time_s, odom
+    def add(self, time_s, pose, odom, measured: bool = True):
+        """The pose of the scan at ``time_s``. ``measured`` False: the pose is not a trusted match
+        (the prediction itself, or a weak or forced placement): the velocity is left as it was,
+        since a prediction would only confirm it and a doubtful jump would be carried on."""
+        pose = np.asarray(pose, dtype=float)
+        if self.last_time is not None and time_s > self.last_time:
+            self._periods.append(time_s - self.last_time)
+        if measured and (not self._history or time_s > self._history[-1][0]):
+            if self._history:
+                # the mean period: bursts of scans stamped a millisecond apart (Intel) can make up
+                # most recent periods, and would pull a median down to them
+                span = VELOCITY_MIN_SPAN * sum(self._periods) / len(self._periods) if self._periods else 0.0
+                # the most recent earlier pose far enough back in time (else the oldest kept)
+                t0, p0 = next(((t, p) for t, p in reversed(self._history) if time_s - t >= span), self._history[0])
+                # in the older pose's frame, applied from the newest: right for a constant twist
+                self.velocity = between(p0, pose) / (time_s - t0)
+            self._history.append((time_s, pose))
+        self.last_pose, self.last_time, self.last_odom = pose, time_s, odom
 
 
 #: a translation direction is degenerate when the scan's information along it is below this share of the other's
@@ -255,7 +285,8 @@ class LocalSlam:
         rd = range_data(scan, self.cfg.range_filter)
         kept = voxel_filter_index(rd.hits, self.cfg.range_filter.voxel_filter_size)
         points = rd.hits[kept]
-        predicted = self.extrapolator.predict(scan.timestamp, scan.odom_pose)
+        odom = scan.odom_pose if self.cfg.real_time_matcher.use_odometry else None
+        predicted = self.extrapolator.predict(scan.timestamp, odom)
         pose = predicted
         score = None
         kept_match = None
@@ -341,7 +372,7 @@ class LocalSlam:
                 self.untrusted_in_a_row += 1
         pose = np.array([pose[0], pose[1], math.remainder(pose[2], 2 * math.pi)])
         self._doubt += self._step_doubt(quality, pose, recovered, submap is not None)
-        self.extrapolator.add(scan.timestamp, pose, scan.odom_pose)
+        self.extrapolator.add(scan.timestamp, pose, odom, measured=quality in ("trusted", "unmatched"))
         inserted = quality != "untrusted" and not self.filter.is_similar(scan.timestamp, pose)
         finished = []
         inserted_into = []

@@ -173,3 +173,15 @@ def test_odometry_only_without_odometry_names_the_file(tmp_path):
     assert "no_odom.mcap: record 0: scan has no odometry" in r.stderr
     # local SLAM without odometry still runs (constant-velocity prediction)
     assert slam2d("run", p, "--out", tmp_path / "l", "--no-progress").returncode == 0
+
+
+def test_no_odometry_ignores_the_inputs_odometry(tmp_path):
+    """--no-odometry: local SLAM predicts from the matches' velocity alone (the run's config says so)
+    and still follows the bundled log's ground truth; with --odometry-only it is a usage error."""
+    r = slam2d("run", BUNDLED, "--out", tmp_path / "n", "--no-odometry", "--no-loop-closure", "--no-progress")
+    assert r.returncode == 0, r.stderr
+    assert "use_odometry: false" in (tmp_path / "n" / "config.yaml").read_text()
+    s = json.loads((tmp_path / "n" / "summary.json").read_text())
+    assert s["ate_vs_ground_truth"]["trans_m"]["rmse"] < 0.15
+    r = slam2d("run", BUNDLED, "--out", tmp_path / "m", "--no-odometry", "--odometry-only")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "exclude each other" in r.stderr

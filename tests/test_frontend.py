@@ -352,3 +352,62 @@ def test_degenerate_direction_matches_the_numpy_oracle(seed):
         assert (got is None) == (want is None)
         if want is not None:
             assert abs(abs(got @ want) - 1.0) < 1e-9 and abs(np.hypot(*got) - 1.0) < 1e-12
+
+
+# ---- the constant-velocity prediction (no odometry) ----
+def _feed(ex, stamps, poses, measured=None):
+    for k, (t, p) in enumerate(zip(stamps, poses)):
+        ex.add(t, p, None, True if measured is None else measured[k])
+
+
+def test_constant_twist_is_predicted_exactly():
+    """A robot on a circle at a constant twist: the motion between two poses in the older one's frame,
+    applied from the newest, is the next step."""
+    from slam2d.frontend import PoseExtrapolator
+
+    twist = np.array([0.4, 0.0, 0.3])  # per second: 0.4 m/s forward, 0.3 rad/s left
+    stamps = [0.1 * k for k in range(12)]
+    poses = [np.zeros(3)]
+    for _ in stamps[1:]:
+        poses.append(compose(poses[-1], twist * 0.1))
+    ex = PoseExtrapolator()
+    _feed(ex, stamps[:-1], poses[:-1])
+    np.testing.assert_allclose(ex.predict(stamps[-1], None), poses[-1], atol=1e-12)
+
+
+def test_velocity_is_not_taken_over_stamps_a_millisecond_apart():
+    """Intel stamps scans in bursts a millisecond apart. 2 cm of matching noise between two such
+    scans is 20 m/s over 1 ms; the velocity is measured over at least half the mean period, so the
+    next prediction stays within centimetres of the 0.5 m/s truth."""
+    from slam2d.frontend import PoseExtrapolator
+
+    rng = np.random.default_rng(0)
+    stamps, t = [], 0.0
+    for k in range(41):  # ends inside a burst: the last two scans are a millisecond apart
+        t += 0.001 if k % 3 else 0.3  # bursts of three scans, 0.3 s apart
+        stamps.append(t)
+    truth = [np.array([0.5 * s, 0.0, 0.0]) for s in stamps]
+    noisy = [p + np.r_[rng.normal(0, 0.02, 2), 0.0] for p in truth]
+    ex = PoseExtrapolator()
+    _feed(ex, stamps, noisy)
+    assert abs(ex.velocity[0] - 0.5) < 0.2 and abs(ex.velocity[1]) < 0.2
+    pred = ex.predict(stamps[-1] + 0.3, None)
+    assert np.hypot(*(pred[:2] - np.array([0.5 * (stamps[-1] + 0.3), 0.0]))) < 0.1
+    # a velocity from the last two scans alone would have been off by metres per second
+    naive = (noisy[-1][:2] - noisy[-2][:2]) / (stamps[-1] - stamps[-2])
+    assert np.hypot(*naive) > 5.0
+
+
+def test_a_pose_that_is_not_a_trusted_match_leaves_the_velocity():
+    """A weak or forced placement may be metres off; the next prediction starts from it but moves
+    at the velocity the trusted matches measured."""
+    from slam2d.frontend import PoseExtrapolator
+
+    stamps = [0.2 * k for k in range(10)]
+    poses = [np.array([0.3 * s, 0.0, 0.0]) for s in stamps]
+    ex = PoseExtrapolator()
+    _feed(ex, stamps, poses)
+    v = ex.velocity.copy()
+    ex.add(2.0, np.array([5.0, 3.0, 1.0]), None, measured=False)
+    np.testing.assert_allclose(ex.velocity, v)
+    np.testing.assert_allclose(ex.predict(2.2, None), compose(np.array([5.0, 3.0, 1.0]), v * 0.2))

@@ -134,3 +134,28 @@ def test_fr_clinic_no_return_readings_never_become_hits():
         assert len(rd.hits) == int(usable.sum())
         assert (np.hypot(*(rd.hits - rd.origin).T) <= cfg.max_range + 1e-6).all()
     assert seen > 1000  # the slice does hold both kinds
+
+
+def test_intel_without_odometry_local_slam_follows_the_scans():
+    """Intel's scans without their odometry (constant-velocity prediction), local SLAM alone over the
+    first 1500 scans (300 s), where bursts of scans stamped a millisecond apart used to make the
+    velocity, and with it the prediction, jump metres (a 7.6 m step at 101 s): no step may differ
+    from the log's own odometry step by more than 0.5 m or 10° (its odometry is good over one step)."""
+    import dataclasses
+    import math
+
+    import slam2d as api
+    from slam2d.geometry import between
+
+    slam = api.Slam(mode="local")
+    prev = prev_odom = None
+    worst_t = worst_r = 0.0
+    for k, scan in enumerate(api.open_source(dataset("intel"))):
+        if k == 1500:
+            break
+        est = slam.add_scan(dataclasses.replace(scan, odom_pose=None))
+        if prev is not None:
+            e = between(between(prev_odom, scan.odom_pose), between(prev, est.local_pose))
+            worst_t, worst_r = max(worst_t, math.hypot(e[0], e[1])), max(worst_r, abs(math.degrees(e[2])))
+        prev, prev_odom = est.local_pose, scan.odom_pose
+    assert worst_t < 0.5 and worst_r < 10.0, (worst_t, worst_r)

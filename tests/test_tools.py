@@ -114,10 +114,14 @@ def test_benchmark_runs_every_suite_on_tiny_logs(tmp_path):
                         "--json", str(tmp_path / "b.json"), "--peers"], capture_output=True, text=True, cwd=ROOT, timeout=900)
     assert r.returncode == 0, r.stderr
     md = (tmp_path / "B.md").read_text()
-    for heading in ("## Relations logs", "## Degraded odometry", "## Sparse logs", "## fr-clinic"):
+    for heading in ("## Relations logs", "## Degraded odometry", "## Without odometry", "## Sparse logs", "## fr-clinic"):
         assert heading in md
     b = json.loads((tmp_path / "b.json").read_text())
     assert [row["dataset"] for row in b["rows"]] == ["tiny"] and [row["dataset"] for row in b["degraded"]] == ["tiny"]
+    # the same log without its odometry: the run says so (its config), and it is scored on the relations
+    nod = b["no_odometry"]
+    assert [row["dataset"] for row in nod] == ["tiny"] and "relations" in nod[0]["slam2d"] and "karto" not in nod[0]
+    assert "use_odometry: false" in (out / "runs" / "no-odometry-tiny" / "config.yaml").read_text()
     assert [row["dataset"] for row in b["clinic"]] == ["fr-clinic"]
     sp = b["sparse"][0]["slam2d"]
     assert b["sparse"][0]["dataset"] == "corner" and sp["ate"]["matching"] == "scan_order" and sp["ate"]["pairs"] == 100

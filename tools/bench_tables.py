@@ -76,8 +76,8 @@ def table(rows, args) -> str:
     return "\n".join(lines)
 
 
-def degraded_table(rows) -> str:
-    lines = ["| dataset (degraded) | system | scans | wall s | peak RSS MB | trans abs m (mean ± std) | rot abs ° (mean ± std) | target: trans ≤ Cartographer clean | met | loops accepted / final / searched | health |",
+def degraded_table(rows, kind: str = "degraded") -> str:
+    lines = [f"| dataset ({kind}) | system | scans | wall s | peak RSS MB | trans abs m (mean ± std) | rot abs ° (mean ± std) | target: trans ≤ Cartographer clean | met | loops accepted / final / searched | health |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
         n, s = row["dataset"], row["slam2d"]

@@ -10,6 +10,7 @@ Suites (issue 11), all in one run by default, `--suite` selects some:
   relations  intel / aces / fr079, relations metric on the dataset's `.relations`;
   degraded   the same logs with worse odometry (`../shared/tools/degrade.py IN OUT --seed 1`,
              its defaults), scored on the original `.relations`;
+  no-odometry  the same logs run with `slam2d run --no-odometry` (odometry is optional), relations;
   sparse     `../shared/tools/make_sparse.py OUTDIR LOG --seed 7` of every corrected log found in
              ../shared/datasets (`*.gfs.log`, `*-corrected.log*`, any depth); ATE RMSE and loop
              precision/recall (`slam2d eval loops --ground-truth`) against the `.gt.txt` it writes;
@@ -51,7 +52,7 @@ from bench_tables import TARGETS, clinic_table, degraded_table, sparse_table, ta
 
 SHARED = ROOT.parent / "shared"
 REFERENCE_LOGS = {"intel": "intel.gfs.log", "aces": "aces-corrected.log.gz", "fr079": "freiburg-079-corrected.log.gz"}
-SUITES = ("relations", "degraded", "sparse", "clinic")
+SUITES = ("relations", "degraded", "no-odometry", "sparse", "clinic")
 LOOP_TOLERANCE = (0.3, 2.0)  # m, deg: slam2d eval loops --ground-truth defaults
 
 
@@ -118,7 +119,7 @@ def _median_run(runs: list[dict]) -> dict:
     return pick
 
 
-def run_log(label: str, log: Path, args, outdir: Path, peer: bool = True) -> dict:
+def run_log(label: str, log: Path, args, outdir: Path, peer: bool = True, extra: tuple = ()) -> dict:
     """slam2d on one log (and the Karto peer when asked and ``peer``), ``--repeat`` times alternating.
 
     Returns {"slam2d": {...}, "karto": {...}?}; slam2d's run folder is ``outdir/label``, the
@@ -133,7 +134,7 @@ def run_log(label: str, log: Path, args, outdir: Path, peer: bool = True) -> dic
     # machine whose speed drifts during the benchmark favours neither
     runs, peer_runs = [], []
     for _ in range(max(1, args.repeat)):
-        runs.append(timed(slam + ["--out", str(outdir / label)] + args.extra))
+        runs.append(timed(slam + ["--out", str(outdir / label)] + list(extra) + args.extra))
         if runs[-1]["returncode"] != 0:
             raise SystemExit(f"{label}: slam2d run failed: {runs[-1]['stderr'].strip()}")
         if peer:
@@ -197,6 +198,17 @@ def bench_degraded(name: str, log: Path, args, outdir: Path) -> dict:
     row["slam2d"]["relations"] = relations_of(outdir / f"degraded-{name}" / "trajectory.txt", rel)
     if "trajectory" in row.get("karto", {}):
         row["karto"]["relations"] = relations_of(Path(row["karto"]["trajectory"]), rel)
+    return row
+
+
+def bench_no_odometry(name: str, args, outdir: Path) -> dict:
+    """A relations log run with ``--no-odometry``: the odometry is optional, and the same default
+    config must map the log from its scans alone (the prediction from the matches' velocity)."""
+    rel = args.shared / "datasets" / name / f"{name}.relations"
+    row = run_log(f"no-odometry-{name}", args.shared / "datasets" / name / f"{name}.clf.bz2", args, outdir,
+                  peer=False, extra=("--no-odometry",))
+    row["dataset"] = name
+    row["slam2d"]["relations"] = relations_of(outdir / f"no-odometry-{name}" / "trajectory.txt", rel)
     return row
 
 
@@ -325,6 +337,9 @@ def main(argv=None) -> int:
         for n in relation_names:
             log = degraded_log(args, n)
             jobs.append(("degraded", log, lambda n=n, log=log: bench_degraded(n, log, args, runs)))
+    if "no-odometry" in suites:
+        jobs += [("no-odometry", datasets / n / f"{n}.clf.bz2", lambda n=n: bench_no_odometry(n, args, runs))
+                 for n in relation_names]
     if "sparse" in suites:
         for n, corrected in corrected_logs(datasets):
             if wanted(n):
@@ -351,7 +366,7 @@ def main(argv=None) -> int:
             "degrade_seed": args.degrade_seed, "sparse_seed": args.sparse_seed, "cache": str(args.cache),
             "targets": TARGETS}
     Path(args.json).write_text(json.dumps({"meta": meta, "rows": rows, "degraded": by_suite["degraded"],
-                                           "sparse": by_suite["sparse"], "clinic": by_suite["clinic"]},
+                                           "no_odometry": by_suite["no-odometry"], "sparse": by_suite["sparse"], "clinic": by_suite["clinic"]},
                                           indent=2, default=float) + "\n")
     flags = "".join(f" --{f}" for f in ("peers", "rerun") if getattr(args, f))
     flags += f" --repeat {args.repeat}" if args.repeat > 1 else ""
@@ -379,6 +394,12 @@ def main(argv=None) -> int:
                f"`degrade.py IN OUT --seed {args.degrade_seed}` (its default odometry model) of each relations log, scored "
                "on the original `.relations`; the target is Cartographer's published figure for the clean log.", "",
                degraded_table(by_suite["degraded"]), ""]
+    if "no-odometry" in suites:
+        md += ["## Without odometry", "",
+               "The relations logs run with `--no-odometry` (the log's wheel odometry ignored; each scan predicted "
+               "from the velocity of the recent trusted matches), scored on the `.relations`; the target is "
+               "Cartographer's published figure for the log *with* odometry.", "",
+               degraded_table(by_suite["no-odometry"], "without odometry"), ""]
     if "sparse" in suites:
         md += ["## Sparse logs", "",
                f"`make_sparse.py OUTDIR LOG --seed {args.sparse_seed}` of every corrected log in `../shared/datasets` "
