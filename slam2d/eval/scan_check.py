@@ -18,12 +18,10 @@ run's loop search or scores: hits come from the log read again with the run's ra
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from scipy.spatial import cKDTree
 
-from slam2d.geometry import between
+from slam2d.geometry import between, transform_points
 
 #: scans on each side of scan i whose hits make up the place j is laid onto
 NEIGHBOURS = 2
@@ -31,11 +29,6 @@ NEIGHBOURS = 2
 RATIO = 2.0
 #: ... and at least this share of j's hits on the place
 MIN_SHARE = 0.3
-
-
-def _place(pose: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    return np.c_[pose[0] + c * pts[:, 0] - s * pts[:, 1], pose[1] + s * pts[:, 0] + c * pts[:, 1]]
 
 
 def overlap_share(hits: dict[int, np.ndarray], poses: np.ndarray, i: int, j: int, rel_ij: np.ndarray,
@@ -53,10 +46,10 @@ def overlap_share(hits: dict[int, np.ndarray], poses: np.ndarray, i: int, j: int
             continue
         if not (np.all(np.isfinite(poses[i])) and np.all(np.isfinite(poses[m]))):
             continue
-        place.append(_place(between(poses[i], poses[m]), h))
+        place.append(transform_points(between(poses[i], poses[m]), h))
     if not place:
         return None
-    dist, _ = cKDTree(np.concatenate(place)).query(_place(np.asarray(rel_ij, dtype=float), src),
+    dist, _ = cKDTree(np.concatenate(place)).query(transform_points(np.asarray(rel_ij, dtype=float), src),
                                                    distance_upper_bound=tolerance)
     return float(np.isfinite(dist).mean())
 

@@ -367,7 +367,7 @@ def _parse_laser(path, lineno, parts) -> _Parsed:
     # ROBOTLASER1 and RAWLASERn share the header; RAWLASERn has no pose fields
     if len(parts) < 9:
         raise InputError(path, f"truncated {kind} line", line=lineno)
-    head = _floats(path, lineno, parts[2:8], "ROBOTLASER1 header field")
+    head = _floats(path, lineno, parts[2:8], f"{kind} header field")
     start, _fov, res, max_range = head[0], head[1], head[2], head[3]
     n = _int(path, lineno, parts[8], "beam count")
     if n <= 0:
@@ -426,7 +426,9 @@ class CarmenLog:
                     f.params[parts[1]] = parts[2]
                 continue
             if kind == "ODOM":
-                odom.extend(self._parse_odom(lineno, parts))
+                vals = self._parse_odom(lineno, parts)
+                if raw is not None:  # kept only for the RAWLASER scans' poses
+                    odom.extend(vals)
                 f.num_odom += 1
                 continue
             if kind in _RAW_TYPES:
