@@ -381,3 +381,55 @@ def test_of_several_raw_lasers_the_one_with_the_most_lines_is_read(tmp_path):
     text += "".join(_rawlaser([4.0, 5.0, 6.0], f"{k}.5", kind="RAWLASER2") for k in range(5))
     scans = list(CarmenLog(write(tmp_path, text)))
     assert len(scans) == 5 and all(s.num_beams == 3 for s in scans)
+
+
+def test_no_return_survey_batches_end_as_scan_by_scan(monkeypatch):
+    """The survey runs its kernel over batches of scans; its histogram, maximum and no-return values
+    must be those of surveying one scan at a time, including when the log's maximum rises late (the
+    early scans' bands were cut against a lower maximum) and when the histogram compacts midway."""
+    from slam2d.io import carmen
+
+    rng = np.random.default_rng(3)
+    scans = []
+    for i in range(400):
+        top = 20.0 if i < 150 else 81.9  # the maximum rises late
+        r = rng.uniform(0.5, top, 181)
+        r[rng.random(181) < 0.2] = 81.83 if i >= 150 else 19.5  # two spikes, the first one early
+        r[rng.random(181) < 0.05] = np.inf
+        r[rng.random(181) < 0.02] = np.nan
+        scans.append(r)
+
+    def survey(batch, compact_every):
+        monkeypatch.setattr(carmen.NoReturnSurvey, "BATCH", batch)
+        monkeypatch.setattr(carmen.NoReturnSurvey, "COMPACT_EVERY", compact_every)
+        s = carmen.NoReturnSurvey()
+        for r in scans:
+            s.add(r)
+        spikes = s.spikes(400 * 181)
+        return s.max_reading, s.values.copy(), s.counts.copy(), spikes
+
+    for compact_every in (1 << 20, 500):
+        one = survey(1, compact_every)  # every add flushes: scan by scan
+        for batch in (7 * 181, 1 << 16):
+            many = survey(batch, compact_every)
+            assert many[0] == one[0]
+            np.testing.assert_array_equal(many[1], one[1])
+            np.testing.assert_array_equal(many[2], one[2])
+            assert many[3] == one[3]
+    assert [s["value"] for s in one[3]] == [81.83]
+
+
+def test_range_tokens_parse_as_python_floats():
+    """Readings are parsed by numpy in one call: the values must be those of ``float`` for every
+    spelling a log may hold, and a bad token must still name itself."""
+    from slam2d.errors import InputError
+    from slam2d.io.carmen import _float_array
+
+    tokens = ["1.5", "81.83", "1e-3", "-0", "+2.25", "1.", ".5", "nan", "inf", "1e500", "0.1000000000000000055511151231257827"]
+    got = _float_array("x.clf", 3, tokens, "range reading")
+    want = np.array([float(t) for t in tokens])
+    assert got.dtype == np.float64
+    np.testing.assert_array_equal(got, want)
+    assert _float_array("x.clf", 3, tokens[:2], "remission", np.float32).tolist() == np.array([1.5, 81.83], np.float32).tolist()
+    with pytest.raises(InputError, match="x.clf:3: non-numeric range reading '0x10'"):
+        _float_array("x.clf", 3, ["1.0", "0x10"], "range reading")

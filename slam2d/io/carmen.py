@@ -212,16 +212,39 @@ class NoReturnSurvey:
     """
 
     COMPACT_EVERY = 1 << 20  # readings buffered before the histogram is compacted
+    BATCH = 1 << 16  # readings surveyed by one kernel call (per scan, the call would cost more than the work)
 
     def __init__(self):
-        self.max_reading = -math.inf
+        self._max = -math.inf
         self.values = np.empty(0)
         self.counts = np.empty(0, dtype=np.int64)
         self._pending: list[np.ndarray] = []
         self._pending_n = 0
+        self._batch: list[np.ndarray] = []
+        self._batch_n = 0
+
+    @property
+    def max_reading(self) -> float:
+        """The largest finite reading surveyed so far."""
+        self._survey_batch()
+        return self._max
 
     def add(self, ranges: np.ndarray):
-        self.max_reading, band = survey_band(ranges, self.max_reading, 0.5 * SPIKE_BAND)
+        self._batch.append(ranges)
+        self._batch_n += ranges.size
+        if self._batch_n >= self.BATCH:
+            self._survey_batch()
+
+    def _survey_batch(self):
+        """Survey the buffered scans at once. Against the running maximum of the batch rather than of
+        each scan, the band keeps fewer of the values that the next compaction prunes anyway (the band
+        only ever drops values below ``SPIKE_BAND / 2`` of a maximum no larger than the final one), so
+        the histogram ends the same."""
+        if not self._batch:
+            return
+        ranges = self._batch[0] if len(self._batch) == 1 else np.concatenate(self._batch)
+        self._batch, self._batch_n = [], 0
+        self._max, band = survey_band(ranges, self._max, 0.5 * SPIKE_BAND)
         if band.size:
             self._pending.append(band)
             self._pending_n += band.size
@@ -229,6 +252,7 @@ class NoReturnSurvey:
                 self._compact()
 
     def _compact(self):
+        self._survey_batch()
         if not self._pending:
             return
         vals = np.concatenate([self.values, *self._pending])
@@ -323,6 +347,15 @@ def _floats(path, lineno, tokens, what):
         raise
 
 
+def _float_array(path, lineno, tokens, what, dtype=np.float64) -> np.ndarray:
+    """``tokens`` as an array (numpy parses strings as ``float`` does, in one C loop: the readings
+    of a long log are most of its parsing time); errors as ``_floats``."""
+    try:
+        return np.array(tokens, dtype=np.float64).astype(dtype, copy=False)
+    except ValueError:
+        return np.array(_floats(path, lineno, tokens, what), dtype=dtype)
+
+
 def _is_number(token: str) -> bool:
     try:
         float(token)
@@ -359,7 +392,7 @@ def _parse_laser(path, lineno, parts) -> _Parsed:
         if len(parts) < need or len(parts) > need + 2:
             raise InputError(path, f"{kind} declares {n} readings, so it needs {need}..{need + 2} fields; "
                              f"the line has {len(parts)} (beam count mismatch or truncated line)", line=lineno)
-        ranges = np.array(_floats(path, lineno, parts[2:2 + n], "range reading"), dtype=np.float64)
+        ranges = _float_array(path, lineno, parts[2:2 + n], "range reading")
         tail = _floats(path, lineno, parts[2 + n:2 + n + 7], "pose/timestamp field")
         a0, da = flaser_geometry(n)
         return _Parsed(kind, tail[6], parts[2 + n + 6], ranges, a0, da,
@@ -374,7 +407,7 @@ def _parse_laser(path, lineno, parts) -> _Parsed:
         raise InputError(path, f"beam count must be positive, found {n}", line=lineno)
     if len(parts) < 9 + n + 1:
         raise InputError(path, f"{kind} declares {n} readings but the line is truncated", line=lineno)
-    ranges = np.array(_floats(path, lineno, parts[9:9 + n], "range reading"), dtype=np.float64)
+    ranges = _float_array(path, lineno, parts[9:9 + n], "range reading")
     m = _int(path, lineno, parts[9 + n], "remission count")
     base = 10 + n + m
     fields = 1 if kind in _RAW_TYPES else 12  # ipc_ts; or laser pose, robot pose, 5 velocities/safety, ipc_ts
@@ -382,7 +415,7 @@ def _parse_laser(path, lineno, parts) -> _Parsed:
     if m < 0 or len(parts) < need or len(parts) > need + 2:
         raise InputError(path, f"{kind} with {n} readings and {m} remissions needs {need}..{need + 2} fields; "
                          f"the line has {len(parts)}", line=lineno)
-    rem = np.array(_floats(path, lineno, parts[10 + n:base], "remission"), dtype=np.float32) if m == n else None
+    rem = _float_array(path, lineno, parts[10 + n:base], "remission", np.float32) if m == n else None
     tail = _floats(path, lineno, parts[base:base + fields], "pose/timestamp field")
     if not (res > 0 and math.isfinite(res)):
         raise InputError(path, f"angular resolution must be positive, found {res}", line=lineno)
