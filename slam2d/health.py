@@ -21,7 +21,9 @@ Two kinds of evidence:
 * **What local and global SLAM said along the way**: matches that could not be trusted,
   recovery searches, loop constraints the optimizer had to remove.
 
-``status`` is OK, WARN or BROKEN; ``reasons`` says why when it is not OK.
+``status`` is OK, WARN or BROKEN; ``reasons`` says why when it is not OK, and
+``revisits_disagreeing_at`` says where: the longest stretches of the trajectory whose scans
+disagree with the earlier pass, with a map position to look at.
 """
 from __future__ import annotations
 
@@ -40,6 +42,8 @@ NEIGHBOUR_RADIUS = 8.0
 NEIGHBOURS_PER_PASS = 4
 #: a hit violates free space when it lies 2 cells + this share of its range in front of the other's return
 VIOLATION_RANGE_SHARE = 0.01
+#: the health section lists this many of the longest stretches where revisits disagree
+STRETCHES_REPORTED = 5
 
 
 def free_space_violation(nodes, poses, resolution: float) -> np.ndarray:
@@ -108,16 +112,49 @@ def free_space_checks(nodes, poses, resolution: float) -> tuple[np.ndarray, np.n
     return out, revisit
 
 
+def disagreeing_stretches(nodes, poses, violation: np.ndarray, most: int = STRETCHES_REPORTED) -> list[dict]:
+    """Where the map disagrees with itself: the runs of consecutive nodes whose violation share exceeds
+    ``MAX_VIOLATION`` (a node that agrees ends a run, and so does more than ``NEIGHBOUR_RADIUS`` of
+    path without a checked node; nodes not checked, NaN, neither extend nor break it), longest
+    first, at most ``most``: first and last scan, the number of disagreeing nodes, and the map
+    position [m] of the run's middle one, so a user can find the place in map.png."""
+    poses = np.asarray(poses, dtype=float).reshape(-1, 3)
+    path = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(poses[:, :2], axis=0).T))])
+    runs, cur = [], []
+    for i, x in enumerate(violation):
+        if np.isnan(x):
+            continue
+        if cur and path[nodes[i].scan_index] - path[nodes[cur[-1]].scan_index] > NEIGHBOUR_RADIUS:
+            runs.append(cur)
+            cur = []
+        if x > MAX_VIOLATION:
+            cur.append(i)
+        elif cur:
+            runs.append(cur)
+            cur = []
+    if cur:
+        runs.append(cur)
+    runs.sort(key=lambda r: (-len(r), r[0]))
+    out = []
+    for r in runs[:most]:
+        mid = poses[nodes[r[len(r) // 2]].scan_index]
+        out.append({"scans": [int(nodes[r[0]].scan_index), int(nodes[r[-1]].scan_index)], "nodes": len(r),
+                    "at": [round(float(mid[0]), 1), round(float(mid[1]), 1)]})
+    return out
+
+
 def assess(cfg, nodes, poses, local: dict | None = None, loops: dict | None = None) -> dict:
     """The ``health`` section of summary.json. ``local``/``loops``: the ``local_slam`` and
     ``loop_closure`` sections (absent for odometry-only runs or local SLAM alone)."""
     v, rv = free_space_checks(nodes, poses, cfg.grid.resolution)
+    where = disagreeing_stretches(nodes, poses, rv)
     v, rv = v[~np.isnan(v)], rv[~np.isnan(rv)]
     share = float((v <= MAX_VIOLATION).mean()) if v.size else 1.0
     revisits = float((rv <= MAX_VIOLATION).mean()) if rv.size else 1.0
     out = {"scans_checked": int(v.size), "scans_agreeing_with_map": round(share, 4),
            "mean_free_space_violation": round(float(v.mean()), 4) if v.size else None,
-           "revisits_checked": int(rv.size), "revisits_agreeing": round(revisits, 4)}
+           "revisits_checked": int(rv.size), "revisits_agreeing": round(revisits, 4),
+           "revisits_disagreeing_at": where}
     reasons, level = [], 0
     if share < BROKEN_AGREEING:
         level = 2
@@ -128,10 +165,11 @@ def assess(cfg, nodes, poses, local: dict | None = None, loops: dict | None = No
     if revisits < BROKEN_AGREEING:
         level = 2
         reasons.append(f"only {100 * revisits:.0f} % of the scans where the robot came back agree with its earlier pass "
-                       "(a loop was not closed, or closed wrong)")
+                       f"(a loop was not closed, or closed wrong){_worst(where)}")
     elif revisits < WARN_AGREEING:
         level = max(level, 1)
-        reasons.append(f"{100 * (1 - revisits):.0f} % of the scans where the robot came back disagree with its earlier pass")
+        reasons.append(f"{100 * (1 - revisits):.0f} % of the scans where the robot came back disagree with its earlier pass"
+                       f"{_worst(where)}")
     if local:
         matched = local.get("matched_scans", 0) + local.get("untrusted", 0)
         untrusted = local.get("untrusted", 0) / matched if matched else 0.0
@@ -155,4 +193,11 @@ def assess(cfg, nodes, poses, local: dict | None = None, loops: dict | None = No
     return out
 
 
-__all__ = ["assess", "free_space_checks", "free_space_violation"]
+def _worst(where: list[dict]) -> str:
+    if not where:
+        return ""
+    w = where[0]
+    return f"; the longest stretch: scans {w['scans'][0]}-{w['scans'][1]}, around ({w['at'][0]}, {w['at'][1]}) m"
+
+
+__all__ = ["assess", "disagreeing_stretches", "free_space_checks", "free_space_violation"]

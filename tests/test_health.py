@@ -90,6 +90,19 @@ def test_health_flags_a_revisit_that_was_not_closed():
     bad = assess(cfg, result.nodes, poses, tracker.summary()["local_slam"])
     assert bad["revisits_agreeing"] < good["revisits_agreeing"] - 0.1, bad
     assert bad["status"] != "OK" and any("came back" in r for r in bad["reasons"]), bad
+    # where: the longest stretches of disagreeing revisits, each with the position of its middle node;
+    # one of them is the drifted quarter itself, and the good map's are few and short
+    where = bad["revisits_disagreeing_at"]
+    assert where and len(where) <= 5 and where[0]["nodes"] >= where[-1]["nodes"]
+    assert any(w["scans"][0] >= start for w in where), where
+    assert where[0]["nodes"] > max([w["nodes"] for w in good["revisits_disagreeing_at"]], default=0), (where, good)
+    by_scan = {n.scan_index: n for n in result.nodes}
+    for w in where:
+        a, b = w["scans"]
+        assert a in by_scan and b in by_scan and a <= b
+        mids = poses[[i for i in by_scan if a <= i <= b]]
+        assert np.min(np.hypot(mids[:, 0] - w["at"][0], mids[:, 1] - w["at"][1])) < 0.06
+    assert f"scans {where[0]['scans'][0]}-{where[0]['scans'][1]}" in " ".join(bad["reasons"])
 
 
 def test_health_flags_untrusted_matches():
@@ -238,3 +251,29 @@ def test_neighbour_kernel_matches_the_numpy_oracle():
     got = pick_neighbours(origins, path, NEIGHBOUR_RADIUS, 2 * NEIGHBOUR_RADIUS, NEIGHBOURS_PER_PASS)
     np.testing.assert_array_equal(got, _neighbours_oracle(origins, path, NEIGHBOUR_RADIUS, NEIGHBOURS_PER_PASS))
     assert [tuple(r) for r in got] == [(0, 1, 1), (1, 0, 1)]
+
+
+def test_disagreeing_stretches_follow_the_path():
+    """Runs of disagreeing nodes: an agreeing node ends a run, unchecked nodes (NaN) neither extend nor
+    end it unless the path between two checked nodes exceeds the neighbour radius; longest first."""
+    from types import SimpleNamespace
+
+    from slam2d.health import MAX_VIOLATION, NEIGHBOUR_RADIUS, disagreeing_stretches
+
+    n = 40
+    poses = np.zeros((n, 3))
+    poses[:, 0] = 0.5 * np.arange(n)  # 0.5 m between scans
+    poses[35:, 0] += 3 * NEIGHBOUR_RADIUS  # a jump in the path before scan 35
+    nodes = [SimpleNamespace(scan_index=i) for i in range(n)]
+    bad, good = 2 * MAX_VIOLATION, 0.0
+    v = np.full(n, np.nan)
+    v[[2, 3, 5, 6]] = bad      # one run across an unchecked node (4)
+    v[7] = good                # ... ended by an agreeing one
+    v[[10, 11, 12]] = bad      # a second, shorter run
+    v[[33, 34, 36]] = bad      # 10.5 m of path after 12, not the same run; broken again by the jump
+    out = disagreeing_stretches(nodes, poses, v)
+    assert [w["scans"] for w in out] == [[2, 6], [10, 12], [33, 34], [36, 36]]
+    assert [w["nodes"] for w in out] == [4, 3, 2, 1]
+    assert out[0]["at"] == [2.5, 0.0]  # the middle disagreeing node, scan 5
+    assert disagreeing_stretches(nodes, poses, np.full(n, good)) == []
+    assert len(disagreeing_stretches(nodes, poses, v, most=2)) == 2
