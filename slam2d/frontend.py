@@ -9,11 +9,10 @@ motion filter are inserted and become nodes.
 Submap size depends on whether a pose graph follows. Without one, nothing corrects the
 drift between submaps, and a revisit is tied to the earlier pass only when both fall in
 one submap; ``submaps.num_range_data_without_loop_closure`` (400) is therefore larger
-than the 90 global SLAM uses, where small rigid submaps let the graph bend. Intel,
-local SLAM alone, ten runs of ``tools/spread.py`` (the world rotated by small angles, a
-null change that shows the run-to-run spread): 90 → mean 0.149 m (0.132–0.168), 400 →
-0.067 m (0.046–0.089); 6–10 runs each with 300/350/450/500/700 averaged 0.079–0.095 m. Global
-SLAM with 400-scan submaps scored 0.073 m on Intel against 0.015 m with 90.
+than the 90 global SLAM uses, where small rigid submaps let the graph bend. Both sizes were
+chosen on the relations metric with ``tools/spread.py`` (the world rotated by small angles, a
+null change that shows the run-to-run spread); the figures are in the README, "Measurements
+behind the defaults".
 """
 from __future__ import annotations
 

@@ -7,9 +7,8 @@ of the distance to the nearest occupied cell, σ = 0.1 m, kept exact incremental
 change; ``ProbabilityGrid.compute_field`` is its Euclidean-distance-transform oracle). Scoring
 the hit probabilities instead, as Cartographer does, biased matches: a fresh wall's free
 cells (0.49) score almost like its hits (0.55) while cells behind it are unknown (0.12), so
-scans slid toward the sensor; on the simulator the local trajectory lost ~15 % of every
-step along corridors, and Intel's relations error was 1.48 m against 0.16–0.25 m with the
-field. ``score_grid: probability`` keeps that option.
+scans slid toward the sensor and lost part of every step along corridors (the figures are in
+the README, "Measurements behind the defaults"). ``score_grid: probability`` keeps that option.
 
 ``branch_depth > 0`` runs the coarse-to-fine search (Olson's low-resolution upper bounds,
 here the max-pooled grids of Hess et al. 2016) instead of scoring every candidate; it

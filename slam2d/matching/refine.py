@@ -6,7 +6,7 @@ result (translation and rotation weights), which keeps the solution inside the b
 correlative search found. It runs on the probability grid, not on the likelihood field:
 the field is flat across a wall's width (every cell of a thick wall is "occupied"), which
 leaves no gradient below cell size (tests/test_matchers.py shows the refinement halving the
-error on the probability grid). The kernel costs ~0.2–0.3 ms per scan (BENCHMARKS.md).
+error on the probability grid). Its cost per scan is the ``refine`` timing in summary.json and BENCHMARKS.md.
 """
 from __future__ import annotations
 
