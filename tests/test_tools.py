@@ -111,10 +111,13 @@ def test_benchmark_runs_every_suite_on_tiny_logs(tmp_path):
     out = tmp_path / "bench"
     r = subprocess.run([sys.executable, str(ROOT / "tools" / "benchmark.py"), "--shared", str(shared),
                         "--cache", str(tmp_path / "cache"), "--out", str(out), "--markdown", str(tmp_path / "B.md"),
-                        "--json", str(tmp_path / "b.json"), "--peers"], capture_output=True, text=True, cwd=ROOT, timeout=900)
+                        "--json", str(tmp_path / "b.json"), "--peers",
+                        "--datasets", "tiny,corner,fr-clinic,fast"],  # of the simulated variants, the shortest
+                       capture_output=True, text=True, cwd=ROOT, timeout=900)
     assert r.returncode == 0, r.stderr
     md = (tmp_path / "B.md").read_text()
-    for heading in ("## Relations logs", "## Degraded odometry", "## Without odometry", "## Sparse logs", "## fr-clinic"):
+    for heading in ("## Relations logs", "## Degraded odometry", "## Without odometry", "## Sparse logs", "## fr-clinic",
+                    "## Simulated sensors and robots"):
         assert heading in md
     b = json.loads((tmp_path / "b.json").read_text())
     assert [row["dataset"] for row in b["rows"]] == ["tiny"] and [row["dataset"] for row in b["degraded"]] == ["tiny"]
@@ -136,6 +139,14 @@ def test_benchmark_runs_every_suite_on_tiny_logs(tmp_path):
     else:  # the peer runs beside slam2d on every FLASER log, never on fr-clinic
         assert "relations" in b["degraded"][0]["karto"] and "ate" in b["sparse"][0]["karto"]
         assert "karto" not in b["clinic"][0]
+    # a simulated variant: scored against the simulator's own ground truth, beside its odometry
+    sim = b["simulated"]
+    assert [row["dataset"] for row in sim] == ["fast"] and "karto" not in sim[0]
+    assert sim[0]["slam2d"]["ate"]["pairs"] == sim[0]["slam2d"]["scans"]
+    assert sim[0]["slam2d"]["ate"]["trans_m"]["rmse"] < sim[0]["odometry"]["ate"]["trans_m"]["rmse"]
+    assert set(sim[0]["slam2d"]["loops_vs_ground_truth"]) >= {"final_graph", "accepted", "recall"}
+    assert "| fast | speed 2, turn_rate 2.5 |" in md
+    assert list((tmp_path / "cache").glob("simulator-seed0-*/fast-*/fast.mcap"))
     # the generated logs are in the cache, not in the output folder or the repository
     assert list((tmp_path / "cache").glob("make_sparse-seed7-*/corner/corner.clf"))
     assert list((tmp_path / "cache").glob("degrade-seed1-*/tiny/tiny.clf"))

@@ -120,6 +120,23 @@ def sparse_table(rows) -> str:
     return "\n".join(lines)
 
 
+def simulated_table(rows) -> str:
+    from bench_logs import SIM_VARIANTS
+
+    lines = ["| variant | what differs | scans | wall s | peak RSS MB | ATE RMSE m | odometry ATE RMSE m | loops accepted / final / searched | loop precision vs ground truth, final graph (all accepted) | health |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for row in rows:
+        n, s = row["dataset"], row["slam2d"]
+        what = ", ".join(f"{k} {v:g}" for k, v in SIM_VARIANTS.get(n, {}).items())
+        g = s.get("loops_vs_ground_truth")
+        prec = f"{_pct(g['final_graph'])} ({_pct(g['accepted'])})" if g else "—"
+        odo = row.get("odometry", {}).get("ate")
+        lines.append(f"| {n} | {what} | {s['scans']} | {s['wall_s']:.1f} | {s['peak_rss_mb']:.0f} | "
+                     f"{s['ate']['trans_m']['rmse']:.3f} | {odo['trans_m']['rmse']:.3f} | {loops_txt(s)} | {prec} | "
+                     f"{health_txt(s)} |" if odo else f"| {n} | {what} | {s['scans']} | — | — | — | — | — | — | — |")
+    return "\n".join(lines)
+
+
 def clinic_table(rows) -> str:
     t = TARGETS["clinic"]
     lines = [f"| dataset | scans | data s | wall s (target ≤ {t['wall_s']:.0f}) | peak RSS MB (target ≤ {t['peak_rss_mb']:.0f}) | loops accepted / final / searched | health (target {t['health']}) | met |",
