@@ -2,10 +2,13 @@
 
 Cartographer's ``RangeData`` (origin, returns, misses) after its range filter: hits
 farther than ``max_range`` become misses cut at ``max_range``; no-return beams become
-misses of length ``missing_data_ray_length``; NaN/invalid readings are dropped.
+misses of length ``missing_data_ray_length``, never longer than the sensor's own range (a
+no-return says nothing lies within it; beyond, the space is unknown); NaN/invalid readings are
+dropped.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,7 +37,9 @@ def range_data(scan: Scan, cfg: RangeFilterConfig) -> RangeData:
     misses = np.empty((n, 2))
     no_ret = scan.no_return if scan.no_return is not None else np.zeros(n, dtype=np.bool_)
     off = scan.laser_offset
-    miss_len = min(cfg.missing_data_ray_length, cfg.max_range) if cfg.missing_data_ray_length > 0 else 0.0
+    # a no-return says nothing lies within the sensor's range: beyond it the space is unknown
+    sensor = scan.range_max if scan.range_max > 0 else math.inf
+    miss_len = min(cfg.missing_data_ray_length, cfg.max_range, sensor) if cfg.missing_data_ray_length > 0 else 0.0
     nh, nm = _kernels.scan_to_range_data(scan.ranges, scan.valid, no_ret, float(scan.angle_min),
                                          float(scan.angle_increment), float(max(cfg.min_range, scan.range_min)),
                                          float(cfg.max_range), float(miss_len), float(off[0]), float(off[1]),

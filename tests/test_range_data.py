@@ -188,3 +188,14 @@ def test_voxel_filter_index_picks_the_filters_points(seed):
             idx = voxel_filter_index(pts, size)
             assert np.all(np.diff(idx) > 0)
             np.testing.assert_array_equal(pts[idx], voxel_filter(pts, size))
+
+
+def test_no_return_rays_stop_at_the_sensor_range():
+    """A no-return says nothing lies within the sensor's range; beyond it the space is unknown, so a
+    4 m sensor's no-return rays insert free space to 4 m, not to missing_data_ray_length (5 m)."""
+    r = np.array([2.0, np.inf, 3.0, np.inf], np.float32)
+    for sensor, want in ((4.0, 4.0), (30.0, 5.0)):
+        scan = Scan.from_ranges(0.0, r, -0.3, 0.2, sensor)
+        rd = range_data(scan, RangeFilterConfig())
+        assert len(rd.hits) == 2 and len(rd.misses) == 2
+        np.testing.assert_allclose(np.hypot(*rd.misses.T), want, rtol=1e-6)
