@@ -72,7 +72,6 @@ def sparse_log(args, name: str, corrected: Path) -> tuple[Path, Path]:
     return clf[0], gt[0]
 
 
-
 #: simulated sensors and robots the real logs do not cover (``slam2d.io.simulator.SimConfig`` fields
 #: that differ from the bundled dataset's), each a log slam2d was not tuned on
 SIM_VARIANTS = {

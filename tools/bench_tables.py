@@ -131,9 +131,9 @@ def simulated_table(rows) -> str:
         g = s.get("loops_vs_ground_truth")
         prec = f"{_pct(g['final_graph'])} ({_pct(g['accepted'])})" if g else "—"
         odo = row.get("odometry", {}).get("ate")
+        odo_txt = f"{odo['trans_m']['rmse']:.3f}" if odo else "—"
         lines.append(f"| {n} | {what} | {s['scans']} | {s['wall_s']:.1f} | {s['peak_rss_mb']:.0f} | "
-                     f"{s['ate']['trans_m']['rmse']:.3f} | {odo['trans_m']['rmse']:.3f} | {loops_txt(s)} | {prec} | "
-                     f"{health_txt(s)} |" if odo else f"| {n} | {what} | {s['scans']} | — | — | — | — | — | — | — |")
+                     f"{s['ate']['trans_m']['rmse']:.3f} | {odo_txt} | {loops_txt(s)} | {prec} | {health_txt(s)} |")
     return "\n".join(lines)
 
 
