@@ -230,6 +230,23 @@ class LocalSlam:
         common = observed_scores(submap.grid, grid, [wide.pose, m.pose], points)
         return common is not None and common[0] > common[1]
 
+    def _takes_recovered(self, wide, m, predicted, limit, submap, grid, points) -> bool:
+        """Whether the recovered match ``wide`` replaces ``m``, the real-time window's match around
+        ``predicted`` (None: there is none). It must be trusted where ``m`` was not (``limit``; a
+        wide window always holds some pose that scores a little higher, often a wrong one), beat
+        ``m`` with both scores under the same delta penalty, i.e. the one around ``predicted``
+        that ``m`` carries (the recovered score is that of its own peak: where a scene repeats,
+        a place a door further scores as well as the right one, and the prediction must decide,
+        as it does within the window), and beat ``m`` on the points both put on observed cells
+        (a wide window holds poses that score higher only by laying new ground onto mapped cells)."""
+        if wide is None:
+            return False
+        if m is None:
+            return True
+        return (wide.score * self.matcher.penalty.factor(wide.pose, predicted) > m.score
+                and (limit is None or wide.score >= limit)
+                and self._better_where_observed(submap, grid, wide, m, points))
+
     def _recover(self, grid, scan, predicted, points, limit, floor=0.0):
         """Branch-and-bound over the recovery windows around each distinct prediction, in the order the
         motion model believes them (odometry, constant velocity, no motion): the first whose best
@@ -313,12 +330,7 @@ class LocalSlam:
                     wide = self._recover(grid, scan, predicted, points, limit, floor)
                 timings["recovery"] = (time.perf_counter() - t_rec) * 1e3
                 self.num_recovery_searches += 1
-                # a recovered pose replaces the match only when it is trusted where the match was not:
-                # a wide window always holds some pose that scores a little higher, often a wrong one
-                # and when it also beats the match on the points both put on observed cells (a wide
-                # window holds poses that score higher only by laying new ground onto mapped cells)
-                if wide is not None and (m is None or (wide.score > m.score and (limit is None or wide.score >= limit)
-                                                       and self._better_where_observed(submap, grid, wide, m, points))):
+                if self._takes_recovered(wide, m, predicted, limit, submap, grid, points):
                     # had the recovery chosen wrong, the pose it replaced was the right one
                     recovered = predicted if m is None else m.pose
                     m = wide

@@ -318,6 +318,54 @@ def test_a_recovered_pose_must_win_where_both_poses_are_observed():
     assert LocalSlam._better_where_observed(sub, mg, wide, edge, pts)
 
 
+def test_a_recovered_pose_must_win_under_the_prediction_s_penalty(monkeypatch):
+    """Where a scene repeats (doors along a corridor), the recovery's wide window holds a place a
+    period away that scores a little higher than the right pose, which the real-time window found
+    as a clear peak just under the trust limit. The in-window match carries the delta penalty around
+    the prediction; the recovered pose must beat it under that same penalty, so a small gain far from
+    the prediction does not move the scan, while a clear gain, or a small one near the prediction,
+    does."""
+    from slam2d.config import config_from_dict
+    from slam2d.matching.real_time import MatchResult
+
+    tracker = LocalSlam(config_from_dict({}), loop_closure=True)
+    monkeypatch.setattr(LocalSlam, "_better_where_observed", staticmethod(lambda *a: True))  # tested above
+    predicted = np.array([4.0, -2.0, 0.3])
+    m = MatchResult(predicted + [0.05, 0.0, 0.0], 0.700, 1)           # the in-window peak
+    pen = tracker.matcher.penalty
+
+    def takes(offset, score, limit=0.705):
+        wide = MatchResult(predicted + np.asarray(offset), score, 1)
+        return tracker._takes_recovered(wide, m, predicted, limit, None, None, None)
+
+    far = [1.8, 0.3, 0.0]
+    assert 0.71 * pen.factor(predicted + far, predicted) < 0.70    # the penalty there outweighs the gain
+    assert not takes(far, 0.71)                                      # a door further on: kept in place
+    assert takes(far, 0.80)                                          # the odometry failed: recovered
+    assert takes([0.1, 0.0, 0.02], 0.71)                             # a small gain near the prediction
+    assert not takes([0.1, 0.0, 0.02], 0.701, limit=0.75)            # never below the trust limit
+    assert tracker._takes_recovered(MatchResult(predicted, 0.1, 1), None, predicted, 0.705, None, None, None)
+    assert not tracker._takes_recovered(None, m, predicted, 0.705, None, None, None)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_delta_penalty_factor_is_the_kernels(seed):
+    """``DeltaPenalty.factor`` of a lattice pose equals the factor the search kernels apply there."""
+    from slam2d.matching import _kernels
+    from slam2d.matching.search import DeltaPenalty
+
+    rng = np.random.default_rng(seed)
+    pen = DeltaPenalty(*rng.uniform(0.05, 2.0, 2))
+    res = 0.05
+    predicted = rng.uniform(-5, 5, 3)
+    for _ in range(50):
+        dx, dy = rng.integers(-40, 41, 2)
+        angle = rng.uniform(-0.8, 0.8)
+        pose = predicted + [dx * res, dy * res, angle]
+        ref = _kernels._penalty(pen.translation_weight, pen.rotation_weight, res, angle, int(dx), int(dy), 1)
+        assert pen.factor(pose, predicted) == pytest.approx(ref, rel=1e-12)
+
+
 def _degenerate_oracle(points):
     """``degenerate_direction`` in plain numpy: the tangents' information and ``np.linalg.eigh``."""
     from slam2d.frontend import DEGENERATE_RATIO, NORMAL_MIN_BASELINE, NORMAL_NEIGHBOUR_GAP, NORMAL_NEIGHBOURS

@@ -204,6 +204,12 @@ class DeltaPenalty:
     translation_weight: float = 0.0
     rotation_weight: float = 0.0
 
+    def factor(self, pose, predicted) -> float:
+        """The factor of ``pose`` in a search around ``predicted``."""
+        v = (self.translation_weight * math.hypot(pose[0] - predicted[0], pose[1] - predicted[1])
+             + self.rotation_weight * abs(math.remainder(pose[2] - predicted[2], 2 * math.pi)))
+        return math.exp(-v * v)
+
     def smallest_factor(self, params: SearchParameters) -> float:
         """The factor at the lattice's far corner (its largest offset and angle, as the kernels
         measure them): no candidate of ``params`` is penalized more."""
