@@ -405,7 +405,8 @@ class LocalSlam:
         return MatchingResult(scan.timestamp, pose, rd, inserted, score, timings,
                               active_submap=self.submaps.matching_submap, finished_submaps=finished,
                               inserted_into=inserted_into, match=kept_match, points=points, point_index=kept,
-                              quality=quality, doubt=doubt)
+                              quality=quality, doubt=doubt,
+                              replaced=None if recovered is None else np.array(recovered, dtype=float))
 
     def _step_doubt(self, quality, pose, replaced, had_submap) -> np.ndarray:
         """What a step adds to ``MatchingResult.doubt``. A recovered pose and the pose it replaced (the

@@ -95,6 +95,8 @@ class MatchingResult:
     #: how far (m, rad) the pose may be off beyond the drift model, from the steps since the last
     #: inserted scan that local SLAM could not vouch for (``LocalSlam._step_doubt``; sizes global SLAM's windows)
     doubt: tuple = (0.0, 0.0)
+    #: the pose a recovered match replaced (the real-time window's match, or the prediction), else None
+    replaced: np.ndarray | None = None
 
     @property
     def covariance(self) -> np.ndarray | None:
