@@ -28,26 +28,22 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
-def audit(scans, cfg=None, ground_truth=None) -> list[dict]:
+def audit(scans, cfg=None, ground_truth: np.ndarray | None = None) -> list[dict]:
     """One row per recovered scan: its index and quality, and the distance (m) and heading error
     (deg) to the ground truth of the recovered pose and of the replaced one. ``ground_truth``:
-    (times, poses (N, 3)) matched to each scan by timestamp (within 1 ms), else each scan's own
-    ``ground_truth``. Scans before the first trusted one, or without ground truth, are skipped."""
+    (N, 3), one pose per scan in input order, NaN where there is none (``load_ground_truth``);
+    else each scan's own ``ground_truth``. Scans before the first trusted one, or without ground
+    truth, are skipped."""
     from slam2d.config import config_from_dict
     from slam2d.frontend import LocalSlam
     from slam2d.geometry import between, compose
 
     slam = LocalSlam(cfg or config_from_dict({}), loop_closure=True)
     rows, anchor = [], None
-    for scan in scans:
+    for i, scan in enumerate(scans):
         res = slam.add_scan(scan)
-        gt = scan.ground_truth
-        if ground_truth is not None:
-            times, poses = ground_truth
-            k = int(np.clip(np.searchsorted(times, scan.timestamp), 1, len(times) - 1))
-            k = k if abs(times[k] - scan.timestamp) <= abs(times[k - 1] - scan.timestamp) else k - 1
-            gt = poses[k] if abs(times[k] - scan.timestamp) < 1e-3 else None
-        if gt is None:
+        gt = scan.ground_truth if ground_truth is None else ground_truth[i]
+        if gt is None or not np.all(np.isfinite(gt)):
             continue
         gt = np.asarray(gt, dtype=float)
         if res.replaced is not None and anchor is not None:
@@ -69,22 +65,23 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0], epilog=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("log", help="any input slam2d reads (CARMEN, MCAP, ROS bag)")
-    ap.add_argument("--ground-truth", help="TUM file, one pose per scan by timestamp (default: the input's own "
-                                           "ground truth, e.g. the simulator's)")
+    ap.add_argument("--ground-truth", help="TUM file with one pose per scan (in scan order when the counts are "
+                                           "equal, else by timestamp) or an MCAP with /ground_truth, as for "
+                                           "`slam2d eval loops` (default: the input's own ground truth)")
     ap.add_argument("--config", help="YAML config (default: the built-in defaults)")
     args = ap.parse_args(argv)
     from slam2d.config import load_config
     from slam2d.errors import Slam2dError
+    from slam2d.eval.reference import load_ground_truth
     from slam2d.io.source import open_source
-    from slam2d.io.trajectory import read_tum
 
     try:
         cfg = load_config(args.config) if args.config else None
+        scans = list(open_source(args.log))
         gt = None
         if args.ground_truth:
-            t, poses, _ = read_tum(args.ground_truth)
-            gt = (np.asarray(t, dtype=float), np.asarray(poses, dtype=float))
-        rows = audit(open_source(args.log), cfg, gt)
+            gt = load_ground_truth(args.ground_truth, np.array([s.timestamp for s in scans])).poses
+        rows = audit(scans, cfg, gt)
     except Slam2dError as e:
         raise SystemExit(f"recovery_audit.py: error: {e}") from None
     for r in rows:

@@ -204,18 +204,19 @@ class DeltaPenalty:
     translation_weight: float = 0.0
     rotation_weight: float = 0.0
 
+    def _of(self, distance: float, angle: float) -> float:
+        v = self.translation_weight * distance + self.rotation_weight * abs(angle)
+        return math.exp(-v * v)
+
     def factor(self, pose, predicted) -> float:
         """The factor of ``pose`` in a search around ``predicted``."""
-        v = (self.translation_weight * math.hypot(pose[0] - predicted[0], pose[1] - predicted[1])
-             + self.rotation_weight * abs(math.remainder(pose[2] - predicted[2], 2 * math.pi)))
-        return math.exp(-v * v)
+        return self._of(math.hypot(pose[0] - predicted[0], pose[1] - predicted[1]),
+                        math.remainder(pose[2] - predicted[2], 2 * math.pi))
 
     def smallest_factor(self, params: SearchParameters) -> float:
         """The factor at the lattice's far corner (its largest offset and angle, as the kernels
         measure them): no candidate of ``params`` is penalized more."""
-        d = math.sqrt(2.0) * params.linear_cells * params.resolution
-        v = self.translation_weight * d + self.rotation_weight * float(np.abs(params.angles).max())
-        return math.exp(-v * v)
+        return self._of(math.sqrt(2.0) * params.linear_cells * params.resolution, float(np.abs(params.angles).max()))
 
 
 def exhaustive(grid: MatchGrid, cells: np.ndarray, linear_cells: int, penalty: DeltaPenalty | None = None,
