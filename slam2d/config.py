@@ -67,7 +67,7 @@ class RealTimeMatcherConfig(_Section):
 
     score_grid: Literal["likelihood_field", "probability"] = Field("likelihood_field", description="What a scan is scored against: a likelihood field (Gaussian of the distance to the nearest occupied cell; Olson 2009) or the hit probabilities (Cartographer).")
     likelihood_field_sigma: float = Field(0.1, gt=0.0, le=1.0, description="Standard deviation of the likelihood field [m] (cut at 3 sigma).")
-    linear_search_window: float = Field(0.3, gt=0.0, description="Largest half-width of the x/y search window around the predicted pose [m].")
+    linear_search_window: float = Field(0.3, gt=0.0, description="Largest half-width of the x/y search window around the predicted pose [m], unless recent trusted matches measured the prediction's error larger: then three times its RMS (scans a metre apart with noisy odometry need no other setting).")
     angular_search_window_deg: float = Field(10.0, gt=0.0, le=180.0, description="Largest half-width of the rotation search window [deg].")
     min_linear_search_window: float = Field(0.05, gt=0.0, description="Half-width of the x/y window when the robot did not move [m]; it grows with the motion since the last scan.")
     min_angular_search_window_deg: float = Field(1.0, gt=0.0, description="Half-width of the rotation window when the robot did not turn [deg].")

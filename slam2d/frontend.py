@@ -42,6 +42,8 @@ log = logging.getLogger(__name__)
 RECENT_SCORES = 50
 #: ... and judges matches once this many exist (before that every match is trusted)
 MIN_SCORES_FOR_TRUST = 10
+#: the largest real-time translation window covers this many standard deviations of the prediction's measured error
+WINDOW_SIGMAS = 3.0
 
 
 #: the velocity is measured over at least this share of the log's typical scan period ...
@@ -196,6 +198,8 @@ class LocalSlam:
         self._doubt = np.zeros(2)  # MatchingResult.doubt, gathered until the next insertion
         self.scores: list[float] = []
         self.recent_scores: deque[float] = deque(maxlen=RECENT_SCORES)
+        # how far trusted matches lay from their prediction [m]: the prediction's measured error
+        self.recent_errors: deque[float] = deque(maxlen=RECENT_SCORES)
         w = rt.recovery_linear_window
         depth = min(6, max(1, math.ceil(math.log2(2 * math.ceil(w / cfg.grid.resolution) + 1)) - 1))
         # the recovery's precomputation pools the whole submap each time: over uint8 it moves a quarter
@@ -212,6 +216,22 @@ class LocalSlam:
         lin = rt.min_linear_search_window + rt.window_motion_fraction * d
         ang = (math.radians(rt.min_angular_search_window_deg) + rt.window_motion_fraction * abs(motion[2])
                + math.radians(rt.window_angle_per_metre_deg) * d)
+        return lin, ang
+
+    def largest_windows(self) -> tuple[float, float]:
+        """The largest real-time windows (m, rad). The translation window is the configured one, or
+        ``WINDOW_SIGMAS`` times the RMS distance of recent trusted matches from their prediction
+        where that is larger: with scans a metre apart and noisy odometry, true poses lie beyond
+        the configured window, and each such scan would go to the recovery search, whose wide
+        window also reaches look-alike places far away. (Recovered matches are not counted: they
+        are the events the error model does not cover.) The rotation window stays the configured
+        one: without odometry, constant velocity misjudges every fast turn, and a window grown to
+        cover those matched worse than the recovery search does."""
+        rt = self.cfg.real_time_matcher
+        lin, ang = rt.linear_search_window, math.radians(rt.angular_search_window_deg)
+        if len(self.recent_errors) >= MIN_SCORES_FOR_TRUST:
+            rms = math.sqrt(sum(e * e for e in self.recent_errors) / len(self.recent_errors))
+            lin = max(lin, WINDOW_SIGMAS * rms)
         return lin, ang
 
     def _typical_score(self) -> float | None:
@@ -315,7 +335,9 @@ class LocalSlam:
             t1 = time.perf_counter()
             rt = self.cfg.real_time_matcher
             lin, ang = self.windows(self.extrapolator.motion(predicted))
-            m = self.matcher.match(grid, predicted, points, linear_window=lin, angular_window=ang)
+            lin_max, ang_max = self.largest_windows()
+            m = self.matcher.match(grid, predicted, points, linear_window=lin, angular_window=ang,
+                                   largest=(lin_max, ang_max))
             typical = self._typical_score()
             limit = None if typical is None else rt.min_relative_score * typical
             if m is None or m.on_edge or (limit is not None and m.score < limit):
@@ -358,6 +380,8 @@ class LocalSlam:
                     quality = "trusted"
                     self.num_matched += 1
                     self.recent_scores.append(score)
+                    if recovered is None:  # a recovery is the event the error model does not cover
+                        self.recent_errors.append(math.hypot(m.pose[0] - predicted[0], m.pose[1] - predicted[1]))
                     self.untrusted_in_a_row = 0
                 elif not m.on_edge:
                     # a clear peak inside the window that scores low: the scan sees new ground or little

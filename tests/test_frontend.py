@@ -115,6 +115,61 @@ def test_recovers_from_a_two_second_gap_without_odometry():
         assert dt < 0.1 and dr < 1.0, (j, dt, dr)
 
 
+def _sparse_noisy_scans(spacing=0.8, sigma=0.12, seed=3):
+    """The bundled scans thinned to one every ``spacing`` metres, their odometry steps off by a
+    zero-mean error of ``sigma`` metres per axis (a make_sparse.py log)."""
+    from conftest import BUNDLED
+    from slam2d.io.source import open_source
+
+    rng = np.random.default_rng(seed)
+    out = []
+    for s in open_source(BUNDLED):
+        if not out or math.hypot(*(s.ground_truth[:2] - out[-1].ground_truth[:2])) >= spacing:
+            out.append(s)
+    odom = [np.asarray(out[0].odom_pose, dtype=float)]
+    for a, b in zip(out, out[1:]):
+        odom.append(compose(odom[-1], between(a.odom_pose, b.odom_pose) + np.r_[rng.normal(0.0, sigma, 2), 0.0]))
+    for s, o in zip(out, odom):
+        s.odom_pose = o
+    return out
+
+
+def test_the_translation_window_follows_the_prediction_s_measured_error(monkeypatch):
+    """Scans 0.8 m apart with odometry off by 0.12 m per axis each step: true poses often lie
+    beyond the configured 0.3 m window. Sized by the measured error, the window holds them, so
+    far fewer scans need the recovery search and the steps come out more accurate than with the
+    window held at its configured size."""
+    import slam2d.frontend as frontend
+
+    def run(sigmas):
+        monkeypatch.setattr(frontend, "WINDOW_SIGMAS", sigmas)
+        scans = _sparse_noisy_scans()
+        tracker, poses = _run(scans)
+        steps = [_rel_error(poses[i - 1], poses[i], scans[i - 1].ground_truth, scans[i].ground_truth)[0]
+                 for i in range(1, len(scans))]
+        return tracker, float(np.mean(steps)), tracker.largest_windows()
+
+    fixed, fixed_err, fixed_win = run(0.0)  # max(configured, 0 × error): the configured window
+    grown, grown_err, grown_win = run(3.0)
+    rt = grown.cfg.real_time_matcher
+    assert fixed_win[0] == rt.linear_search_window
+    rms = math.sqrt(np.mean(np.square(grown.recent_errors)))
+    assert grown_win[0] == pytest.approx(max(rt.linear_search_window, 3.0 * rms))
+    assert grown_win[0] > 1.2 * rt.linear_search_window
+    assert grown_win[1] == pytest.approx(math.radians(rt.angular_search_window_deg))
+    assert grown.num_recovery_searches <= fixed.num_recovery_searches / 2, (grown.num_recovery_searches,
+                                                                           fixed.num_recovery_searches)
+    assert grown_err < fixed_err, (grown_err, fixed_err)
+
+
+def test_a_dense_log_keeps_the_configured_window():
+    """Where the prediction errs by millimetres (the bundled log's odometry), the window stays the configured one."""
+    tracker, _ = _run(_bundled_scans(150))
+    assert len(tracker.recent_errors) >= 10
+    assert tracker.largest_windows() == (tracker.cfg.real_time_matcher.linear_search_window,
+                                         math.radians(tracker.cfg.real_time_matcher.angular_search_window_deg))
+
+
 def test_featureless_corridor_follows_the_prediction(monkeypatch):
     """In a corridor whose ends are out of range every pose along it matches equally; the
     match must keep the prediction's position along it instead of sliding back to where the

@@ -90,14 +90,17 @@ class RealTimeCorrelativeScanMatcher:
         self.prior = unmatched_covariance(linear_window, angular_window)
 
     def match(self, grid: MatchGrid, predicted, points: np.ndarray, min_score: float = 0.0,
-              linear_window: float | None = None, angular_window: float | None = None) -> MatchResult | None:
-        """Best pose around ``predicted``; smaller windows than the configured ones may be given
-        (then a best pose on the window's edge repeats the search with the configured windows)."""
-        lin = self.linear_window if linear_window is None else min(linear_window, self.linear_window)
-        ang = self.angular_window if angular_window is None else min(angular_window, self.angular_window)
+              linear_window: float | None = None, angular_window: float | None = None,
+              largest: tuple[float, float] | None = None) -> MatchResult | None:
+        """Best pose around ``predicted``; smaller windows than the largest ones (``largest``, default
+        the configured ones) may be given: then a best pose on the window's edge repeats the
+        search with the largest windows."""
+        top_lin, top_ang = (self.linear_window, self.angular_window) if largest is None else largest
+        lin = top_lin if linear_window is None else min(linear_window, top_lin)
+        ang = top_ang if angular_window is None else min(angular_window, top_ang)
         res = self._match(grid, predicted, points, min_score, lin, ang)
-        if res is not None and res.on_edge and (lin < self.linear_window or ang < self.angular_window):
-            wide = self._match(grid, predicted, points, min_score, self.linear_window, self.angular_window)
+        if res is not None and res.on_edge and (lin < top_lin or ang < top_ang):
+            wide = self._match(grid, predicted, points, min_score, top_lin, top_ang)
             if wide is not None:
                 wide.escalated = True
                 return wide
