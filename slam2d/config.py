@@ -57,7 +57,7 @@ class SubmapConfig(_Section):
 class MotionFilterConfig(_Section):
     """A scan is inserted only when the robot moved enough since the last inserted scan."""
 
-    max_distance: float = Field(0.2, ge=0.0, description="Insert when translation since the last insertion exceeds this [m].")
+    max_distance: float = Field(0.2, ge=0.0, description="Insert when translation since the last insertion exceeds this [m]: of the matched pose, or of the wheel odometry where the input has it (a match sliding back along a corridor cannot then keep the new ground out of the map).")
     max_angle_deg: float = Field(1.0, ge=0.0, description="Insert when rotation since the last insertion exceeds this [deg].")
     max_time: float = Field(5.0, ge=0.0, description="Insert when this much time [s] passed since the last insertion.")
 

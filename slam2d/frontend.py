@@ -408,7 +408,7 @@ class LocalSlam:
         pose = np.array([pose[0], pose[1], math.remainder(pose[2], 2 * math.pi)])
         self._doubt += self._step_doubt(quality, pose, recovered, submap is not None)
         self.extrapolator.add(scan.timestamp, pose, odom, measured=quality in ("trusted", "unmatched"))
-        inserted = quality != "untrusted" and not self.filter.is_similar(scan.timestamp, pose)
+        inserted = quality != "untrusted" and not self.filter.is_similar(scan.timestamp, pose, odom)
         finished = []
         inserted_into = []
         if inserted:

@@ -514,3 +514,49 @@ def test_a_pose_that_is_not_a_trusted_match_leaves_the_velocity():
     ex.add(2.0, np.array([5.0, 3.0, 1.0]), None, measured=False)
     np.testing.assert_allclose(ex.velocity, v)
     np.testing.assert_allclose(ex.predict(2.2, None), compose(np.array([5.0, 3.0, 1.0]), v * 0.2))
+
+
+# ---- the motion filter: the odometry's travel counts as well as the matched pose's ----
+def test_motion_filter_passes_on_the_odometry_s_travel_when_the_pose_stays():
+    from slam2d.motion_filter import MotionFilter
+
+    cfg = config_from_dict({}).motion_filter  # 0.2 m, 1°, 5 s
+    still = np.zeros(3)
+    f = MotionFilter(cfg)
+    assert not f.is_similar(0.0, still, np.array([3.0, 4.0, 0.5]))  # the first pose always passes
+    assert f.is_similar(0.1, still, np.array([3.1, 4.0, 0.5]))       # 0.1 m of odometry: dropped
+    assert not f.is_similar(0.2, still, np.array([3.25, 4.0, 0.5]))  # 0.25 m since the last passed: passes
+    assert f.is_similar(0.3, still, np.array([3.25, 4.15, 0.5]))     # counted from the pose that passed
+    # the odometry's rotation alone does not count: heading is what the scan measures best
+    assert f.is_similar(0.4, still, np.array([3.25, 4.0, 1.5]))
+    # without odometry the matched pose decides, as in Cartographer
+    g = MotionFilter(cfg)
+    assert not g.is_similar(0.0, still)
+    assert g.is_similar(0.1, still) and g.is_similar(4.9, np.array([0.15, 0.1, math.radians(0.5)]))
+    assert not g.is_similar(5.0, np.array([0.25, 0.0, 0.0]))
+    # a pose that moved passes whatever the odometry says
+    h = MotionFilter(cfg)
+    h.is_similar(0.0, still, np.zeros(3))
+    assert not h.is_similar(0.1, np.array([0.3, 0.0, 0.0]), np.zeros(3))
+
+
+def test_a_match_that_stays_while_the_odometry_drives_is_inserted():
+    """The same scan again and again (the scene says the robot stands still) while the wheel
+    odometry drives 5 cm a scan: the match stays where it was, and before, nothing was inserted
+    until max_time passed. Now every 0.2 m of odometry inserts the scan (the trap this breaks:
+    a match sliding back along a corridor keeps the new ground out of the map)."""
+    import dataclasses
+
+    first = _bundled_scans(1)[0]
+    base = np.asarray(first.odom_pose, dtype=float)
+    scans = [dataclasses.replace(first, timestamp=first.timestamp + 0.1 * i, index=i,
+                                 odom_pose=compose(base, np.array([0.05 * i, 0.0, 0.0]))) for i in range(40)]
+    tracker = LocalSlam(config_from_dict({}), loop_closure=True)
+    results = [tracker.add_scan(s) for s in scans]
+    assert all(np.hypot(*(r.local_pose[:2] - results[0].local_pose[:2])) < 0.05 for r in results)  # the match stays
+    inserted = [i for i, r in enumerate(results) if r.inserted]
+    assert len(inserted) >= 8, inserted  # 40 scans × 5 cm = 2 m of odometry: one insertion every 0.2–0.25 m
+    assert all(b - a <= 5 for a, b in zip(inserted, inserted[1:])), inserted
+    # without the odometry's travel counted, only the first scan went in (3.9 s < max_time)
+    ref = LocalSlam(config_from_dict({"real_time_matcher": {"use_odometry": False}}), loop_closure=True)
+    assert sum(ref.add_scan(s).inserted for s in scans) == 1
