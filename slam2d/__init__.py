@@ -10,6 +10,12 @@
 from __future__ import annotations
 
 import importlib
+import os
+
+# numba's OpenMP threads would otherwise spin for milliseconds after every parallel kernel, on the
+# core global SLAM's worker needs (the user's own setting wins; without effect where the process
+# already loaded an OpenMP runtime)
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 # names resolve on first use, so ``slam2d --help`` does not pay for numba and gtsam
 _EXPORTS = {"Slam": "slam2d.slam", "SlamResult": "slam2d.slam", "Estimate": "slam2d.types", "Scan": "slam2d.types",

@@ -129,3 +129,40 @@ def test_caller_cores_leave_one_thread_only_while_the_worker_is_busy():
     assert numba.get_num_threads() == n
     with CallerCores().share():  # nobody else: all threads
         assert numba.get_num_threads() == n
+
+
+def test_the_switch_interval_is_short_while_a_worker_lives_and_restored_after():
+    """While any worker runs, a thread waiting for the interpreter lock gets it within
+    ``SWITCH_INTERVAL``; the value before the first worker comes back when the last one ends.
+    (In a fresh interpreter: workers of this session's dropped Slams may still be alive here.)"""
+    code = """if True:
+        import sys
+        from slam2d.backend.background import SWITCH_INTERVAL, Background
+        sys.setswitchinterval(0.004)
+        a, b = Background(), Background()
+        seen = []
+        a.submit(lambda: seen.append(sys.getswitchinterval()))
+        a.wait()
+        a.join()
+        after_one = sys.getswitchinterval()
+        b.join()
+        print(SWITCH_INTERVAL, seen[0], after_one, sys.getswitchinterval())
+    """
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    limit, during, after_one, after_both = map(float, out.stdout.split())
+    assert during == pytest.approx(min(0.004, limit))
+    assert after_one == pytest.approx(min(0.004, limit))  # b still runs
+    assert after_both == pytest.approx(0.004)
+
+
+def test_importing_slam2d_asks_for_passive_openmp_threads_unless_the_user_chose():
+    """numba's OpenMP workers would spin on the core global SLAM's worker needs."""
+    import os
+
+    code = "import os, slam2d; print(os.environ.get('OMP_WAIT_POLICY'))"
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "PASSIVE"
+    env["OMP_WAIT_POLICY"] = "ACTIVE"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "ACTIVE"

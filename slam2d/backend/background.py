@@ -18,8 +18,38 @@ number of threads.
 from __future__ import annotations
 
 import queue
+import sys
 import threading
 import weakref
+
+#: the interpreter's thread switch interval [s] while a worker runs (``_SwitchInterval``)
+SWITCH_INTERVAL = 0.001
+
+
+class _SwitchInterval:
+    """While any worker lives, the interpreter hands its lock to a waiting thread after at most
+    ``SWITCH_INTERVAL`` instead of CPython's 5 ms: local SLAM re-takes the lock after every numba
+    kernel, and would otherwise often wait most of 5 ms while the worker runs Python between its
+    kernels. The value before the first worker is restored when the last one ends."""
+
+    _lock = threading.Lock()
+    _users = 0
+    _saved = None
+
+    @classmethod
+    def enter(cls):
+        with cls._lock:
+            if cls._users == 0:
+                cls._saved = sys.getswitchinterval()
+                sys.setswitchinterval(min(cls._saved, SWITCH_INTERVAL))
+            cls._users += 1
+
+    @classmethod
+    def leave(cls):
+        with cls._lock:
+            cls._users -= 1
+            if cls._users == 0 and cls._saved is not None:
+                sys.setswitchinterval(cls._saved)
 
 
 class Background:
@@ -79,6 +109,16 @@ def _work(q: queue.SimpleQueue, owner: Background, idle: threading.Event, waited
     ref = weakref.ref(owner)
     del owner
     threads = numba.get_num_threads()  # numba's thread count is per calling thread
+    _SwitchInterval.enter()
+    try:
+        _drain(q, ref, idle, waited, threads)
+    finally:
+        _SwitchInterval.leave()
+
+
+def _drain(q, ref, idle, waited, threads):
+    import numba
+
     failed = False
     while True:
         if q.empty():
