@@ -229,3 +229,29 @@ def test_loop_score_threshold_follows_how_often_a_submap_was_observed():
     assert np.hypot(*(found.pose[:2] - pose[:2])) < 0.05
     off = m.self_score([(pts, compose(pose, [0.5, 0.5, math.radians(20.0)]))])
     assert off < threshold
+
+
+def test_a_nodes_searches_run_cached_stacks_first_with_the_same_outcome(monkeypatch):
+    """``_search_node`` searches the submaps whose stacks are cached first (fewer rebuilds when the
+    cache holds fewer stacks than a node searches) and commits nearest first: the records, the
+    constraints and the trajectory are those of searching nearest first."""
+    import slam2d.backend.global_slam as gsm
+    from slam2d.backend.loop_closure import StackCache
+
+    scans = list(McapLog(BUNDLED))
+
+    def run(cached_first: bool):
+        # room for about two stacks: a node searches up to three submaps
+        monkeypatch.setattr(gsm, "STACK_CACHE_BYTES", 2 * 1024 * 1024)
+        if not cached_first:
+            monkeypatch.setattr(StackCache, "holds", lambda self, key: False)
+        slam = Slam(SlamConfig())
+        res = slam.run(scans)
+        monkeypatch.undo()
+        recs = [{k: v for k, v in r.items() if k != "search_ms"} for r in slam.global_slam.records]
+        return res.poses, recs, slam.global_slam.stacks.builds
+
+    poses_a, recs_a, builds_a = run(True)
+    poses_b, recs_b, builds_b = run(False)
+    assert recs_a == recs_b and np.array_equal(poses_a, poses_b)
+    assert builds_a < builds_b

@@ -188,8 +188,15 @@ class GlobalSlam:
         d = np.hypot(node_g[0] - centres[:, 0], node_g[1] - centres[:, 1])
         near = (ks <= newest - self.lc.exclude_recent_submaps) & (d < self.lc.max_constraint_distance)
         cands = list(zip(d[near].tolist(), ks[near].tolist()))
-        for _, k in sorted(cands)[: self.lc.max_submaps_per_node]:
-            self._search(k, j)
+        chosen = [k for _, k in sorted(cands)[: self.lc.max_submaps_per_node]]
+        # searched with the submaps whose stacks are cached first (a node's nearest submaps recur
+        # at the next sampled node, and taken in one fixed order they make the cache rebuild every
+        # stack it holds fewer than), committed nearest first: the searches of one node are
+        # independent (windows change only at an optimization), so the outcome is the same
+        done = {k: self._search(k, j, defer=True) for k in sorted(chosen, key=lambda k: not self.stacks.holds(k))}
+        for k in chosen:
+            rec, loop, _ = done[k]
+            self._commit(rec, loop)
 
     def _submap_centres(self) -> tuple[np.ndarray, np.ndarray]:
         """(ids, (K, 3) global content centres) of the finished submaps, kept until the next

@@ -81,6 +81,10 @@ class StackCache:
             self._stacks.popitem(last=False)
         return st
 
+    def holds(self, key: int) -> bool:
+        """Whether submap ``key``'s stack is cached (its next search builds none)."""
+        return key in self._stacks
+
     @property
     def nbytes(self) -> int:
         return sum(st.nbytes for st in self._stacks.values())
