@@ -176,8 +176,10 @@ class Slam:
         if gs is not None:
             t1 = time.perf_counter()
             if res.inserted:  # what global SLAM keeps of the scan, so the worker shares nothing that changes
+                # the match goes as it is (its arrays are not changed later): its covariance is computed
+                # on global SLAM's side, off local SLAM's thread
                 self._global(gs.add_node, NodeStamp(scan.index, scan.timestamp, scan.timestamp_text),
-                             np.array(res.local_pose, dtype=float), res.range_data.hits, res.covariance,
+                             np.array(res.local_pose, dtype=float), res.range_data.hits, res.match,
                              list(res.inserted_into), res.doubt)
             for sub in res.finished_submaps:
                 self._global(gs.add_finished_submap, sub)

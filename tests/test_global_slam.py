@@ -256,3 +256,40 @@ def test_a_nodes_searches_run_cached_stacks_first_with_the_same_outcome(monkeypa
     poses_b, recs_b, builds_b = run(False)
     assert recs_a == recs_b and np.array_equal(poses_a, poses_b)
     assert builds_a < builds_b
+
+
+def test_local_match_covariances_are_computed_on_global_slam_s_thread(monkeypatch):
+    """``add_scan`` hands global SLAM the local match itself, whose covariance the worker computes:
+    none on the caller's thread, and the same graph as covariances computed up front."""
+    import threading
+
+    from slam2d.matching.real_time import MatchResult
+
+    scans = list(McapLog(BUNDLED))
+    lazy = MatchResult.covariance
+    threads = []
+
+    def recorded(self):
+        threads.append(threading.current_thread().name)
+        return lazy.fget(self)
+
+    monkeypatch.setattr(MatchResult, "covariance", property(recorded))
+    slam = Slam(SlamConfig())
+    res = slam.run(scans)
+    assert threads and set(threads) == {"slam2d-global"}
+    monkeypatch.undo()
+
+    eager = Slam(SlamConfig())
+    submit = eager._global
+
+    def up_front(fn, *args):  # the covariance computed on the caller's thread, as before
+        if fn.__name__ == "add_node" and args[3] is not None:
+            args = args[:3] + (args[3].covariance,) + args[4:]
+        submit(fn, *args)
+
+    eager._global = up_front
+    res_eager = eager.run(scans)
+    assert sum(r["in_final_graph"] for r in slam.global_slam.records) > 10  # the covariances weigh in a solve
+    assert np.array_equal(res.poses, res_eager.poses)
+    strip = lambda recs: [{k: v for k, v in r.items() if k != "search_ms"} for r in recs]  # noqa: E731
+    assert strip(slam.global_slam.records) == strip(eager.global_slam.records)

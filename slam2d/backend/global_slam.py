@@ -99,7 +99,11 @@ class GlobalSlam:
 
     # ---- input from local SLAM
     def add_node(self, scan, local_pose, hits, covariance, inserted_into, doubt=(0.0, 0.0)):
-        """``doubt``: what local SLAM could not vouch for since the last node (``MatchingResult.doubt``)."""
+        """``covariance``: the local match's 3×3 covariance (map axes), or the match itself (anything with
+        a ``covariance``, e.g. ``MatchResult``: computed here), or None for a scan never matched.
+        ``doubt``: what local SLAM could not vouch for since the last node (``MatchingResult.doubt``)."""
+        if covariance is not None and not isinstance(covariance, np.ndarray):
+            covariance = covariance.covariance
         j = scan.index
         local_pose = np.asarray(local_pose, float)
         prev = self.nodes[self.node_order[-1]] if self.node_order else None
