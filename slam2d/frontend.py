@@ -194,6 +194,8 @@ class LocalSlam:
         self.num_forced = 0
         self.num_degenerate = 0
         self.num_weak = 0
+        self._vain_search_at = None  # where a recovery for a low-scoring peak found nothing (``_searched_in_vain``)
+        self.num_recovery_skipped = 0
         self.untrusted_in_a_row = 0
         self._doubt = np.zeros(2)  # MatchingResult.doubt, gathered until the next insertion
         self.scores: list[float] = []
@@ -340,7 +342,8 @@ class LocalSlam:
                                    largest=(lin_max, ang_max))
             typical = self._typical_score()
             limit = None if typical is None else rt.min_relative_score * typical
-            if m is None or m.on_edge or (limit is not None and m.score < limit):
+            low = m is not None and not m.on_edge and limit is not None and m.score < limit
+            if m is None or m.on_edge or (low and not self._searched_in_vain(predicted)):
                 # not trusted: search wide around every prediction (Olson 2009's exhaustive search made
                 # cheap by branch-and-bound, Hess et al. 2016 Sec. V-C)
                 t_rec = time.perf_counter()
@@ -357,6 +360,8 @@ class LocalSlam:
                     recovered = predicted if m is None else m.pose
                     m = wide
                     self.num_recovered += 1
+                elif low:
+                    self._vain_search_at = predicted
             t2 = time.perf_counter()
             timings["match"] = (t2 - t1) * 1e3
             if m is not None:
@@ -377,6 +382,7 @@ class LocalSlam:
                 self.num_escalated += m.escalated
                 self.scores.append(score)
                 if trusted:
+                    self._vain_search_at = None
                     quality = "trusted"
                     self.num_matched += 1
                     self.recent_scores.append(score)
@@ -432,6 +438,24 @@ class LocalSlam:
                               quality=quality, doubt=doubt,
                               replaced=None if recovered is None else np.array(recovered, dtype=float))
 
+    def _searched_in_vain(self, predicted) -> bool:
+        """Whether a low-scoring peak inside the window skips the recovery search: one made for such a
+        peak, since the last trusted match, found no pose to take within the recovery windows around
+        a prediction that ``predicted`` still lies within. Those windows held every pose the search
+        would try again (shifted by the travel since), so it is tried again once the robot has left
+        them or a match was trusted. A peak on the window's edge, or no peak, is always searched: the
+        true pose lies beyond the window then. A long stretch of new ground (long-range beams past
+        the submap's extent) would otherwise run the wide search at every scan and find nothing."""
+        at = self._vain_search_at
+        if at is None:
+            return False
+        rt = self.cfg.real_time_matcher
+        if (math.hypot(predicted[0] - at[0], predicted[1] - at[1]) >= rt.recovery_linear_window
+                or abs(math.remainder(predicted[2] - at[2], 2 * math.pi)) >= math.radians(rt.recovery_angular_window_deg)):
+            return False
+        self.num_recovery_skipped += 1
+        return True
+
     def _step_doubt(self, quality, pose, replaced, had_submap) -> np.ndarray:
         """What a step adds to ``MatchingResult.doubt``. A recovered pose and the pose it replaced (the
         in-window match, or the prediction) cannot both be right: if the recovery chose wrong, the
@@ -457,6 +481,7 @@ class LocalSlam:
         return {"local_slam": {"matched_scans": self.num_matched, "inserted_scans": self.num_inserted,
                                "wide_searches": self.num_escalated,
                                "recovery_searches": self.num_recovery_searches, "recovered": self.num_recovered,
+                               "recovery_skipped": self.num_recovery_skipped,
                                "untrusted": self.num_untrusted, "inserted_untrusted": self.num_forced, "weak": self.num_weak,
                                "degenerate": self.num_degenerate,
                                "submaps": self.submaps.count, "finished_submaps": len(self.finished_submaps),

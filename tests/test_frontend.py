@@ -560,3 +560,27 @@ def test_a_match_that_stays_while_the_odometry_drives_is_inserted():
     # without the odometry's travel counted, only the first scan went in (3.9 s < max_time)
     ref = LocalSlam(config_from_dict({"real_time_matcher": {"use_odometry": False}}), loop_closure=True)
     assert sum(ref.add_scan(s).inserted for s in scans) == 1
+
+
+def test_a_vain_recovery_is_not_repeated_until_the_robot_left_its_window():
+    """Peaks inside the window that score low (here every one: the trust limit is set above any score)
+    send a scan to the recovery search; once one found nothing to take, the next is searched only
+    when the prediction has left that search's windows (no trusted match comes in between here)."""
+    cfg = config_from_dict({})
+    rt = cfg.real_time_matcher
+    tracker = LocalSlam(cfg, loop_closure=True)
+    tracker._typical_score = lambda: 2.0 / rt.min_relative_score  # a trust limit of 2: no score reaches it
+    searched = []
+    recover = tracker._recover
+
+    def recorded(grid, scan, predicted, *args, **kwargs):
+        searched.append(np.array(predicted, dtype=float))
+        return recover(grid, scan, predicted, *args, **kwargs)
+
+    tracker._recover = recorded
+    results = [tracker.add_scan(s) for s in _bundled_scans(400)]
+    assert tracker.num_recovered == 0 and tracker.num_recovery_skipped > 5 * len(searched) > 0
+    assert sum(r.quality == "weak" for r in results) > 300
+    for a, b in zip(searched, searched[1:]):
+        assert (math.hypot(*(b[:2] - a[:2])) >= rt.recovery_linear_window
+                or abs(math.remainder(b[2] - a[2], 2 * math.pi)) >= math.radians(rt.recovery_angular_window_deg))
