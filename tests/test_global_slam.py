@@ -246,7 +246,6 @@ def test_a_nodes_searches_run_cached_stacks_first_with_the_same_outcome(monkeypa
         if not cached_first:
             monkeypatch.setattr(StackCache, "holds", lambda self, key: False)
         slam = Slam(SlamConfig())
-        slam.global_slam.stacks.min_stacks = 1  # the byte budget alone decides
         res = slam.run(scans)
         monkeypatch.undo()
         recs = [{k: v for k, v in r.items() if k != "search_ms"} for r in slam.global_slam.records]

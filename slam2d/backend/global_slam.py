@@ -30,9 +30,9 @@ from slam2d.matching.real_time import unmatched_covariance
 
 log = logging.getLogger(__name__)
 
-#: bytes of branch-and-bound precomputation stacks kept, most recently searched first (``StackCache``),
-#: beyond the few one node's searches need, which are always kept. An evicted stack is rebuilt from
-#: its submap's uint8 grid when the submap is searched again.
+#: bytes of branch-and-bound precomputation stacks kept, most recently searched first (``StackCache``).
+#: A stack is rebuilt from its submap's uint8 grid in far less time than one search takes, so the
+#: budget only needs to hold the submaps searched around the robot at a time.
 STACK_CACHE_BYTES = 16 * 1024 * 1024
 
 
@@ -54,8 +54,7 @@ class GlobalSlam:
                            incremental=lc.incremental)
         self.matchers: dict[int, SubmapMatcher] = {}
         self.min_scores: dict[int, float] = {}  # per finished submap: the score a loop match must reach
-        # at least the stacks of one node's searches and of the submap finished meanwhile
-        self.stacks = StackCache(STACK_CACHE_BYTES, lc.max_submaps_per_node + 1)
+        self.stacks = StackCache(STACK_CACHE_BYTES)
         self.coarse = {}  # per finished submap: its coarse grid for the wide search, made on first use
         self._centres: dict[int, np.ndarray] = {}  # per finished submap: ``_centre_from_anchor``
         self._centres_at = None                      # ``_submap_centres``'s cache and when it was made

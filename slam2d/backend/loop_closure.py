@@ -60,15 +60,11 @@ class StackCache:
     its submap. Stacks are kept, most recently used first, up to ``max_bytes`` in all; beyond
     it the least recently searched go, and an evicted stack is rebuilt, identically, from the
     submap's uint8 grid when it is searched again. Memory is then bounded whatever the map's
-    size, and a map that fits the budget never rebuilds a stack. The ``min_stacks`` most recently
-    searched are kept whatever their size: a node searches its few nearest submaps, the next
-    sampled node mostly the same ones, and a budget that holds fewer of them than that rebuilds
-    each one at every node (large submaps of a long-range scanner).
+    size, and a map that fits the budget never rebuilds a stack.
     """
 
-    def __init__(self, max_bytes: int, min_stacks: int = 1):
+    def __init__(self, max_bytes: int):
         self.max_bytes = max_bytes
-        self.min_stacks = max(1, min_stacks)
         self._stacks: OrderedDict[int, PrecomputationStack] = OrderedDict()
         self.builds = 0
 
@@ -81,7 +77,7 @@ class StackCache:
         st = PrecomputationStack(matcher.source_grid(), matcher.depth)
         self.builds += 1
         self._stacks[key] = st
-        while len(self._stacks) > self.min_stacks and self.nbytes > self.max_bytes:
+        while len(self._stacks) > 1 and self.nbytes > self.max_bytes:
             self._stacks.popitem(last=False)
         return st
 
