@@ -30,9 +30,8 @@ from slam2d.matching.real_time import unmatched_covariance
 
 log = logging.getLogger(__name__)
 
-#: bytes of branch-and-bound precomputation stacks kept, most recently searched first (``StackCache``).
-#: A stack is rebuilt from its submap's uint8 grid in far less time than one search takes, so the
-#: budget only needs to hold the submaps searched around the robot at a time.
+#: bytes of branch-and-bound precomputation stacks kept, most recently searched first (``StackCache``);
+#: an evicted stack is rebuilt from its submap's uint8 grid when the submap is searched again.
 STACK_CACHE_BYTES = 16 * 1024 * 1024
 
 
