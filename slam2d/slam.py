@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,6 +38,27 @@ from slam2d.observer import Observer
 from slam2d.types import Estimate, Node, Scan
 
 MODES = ("global", "local", "odometry")
+
+
+#: bytes of local-match score volumes waiting for global SLAM's worker to compute their covariances
+HANDOVER_BYTES = 16 * 1024 * 1024
+
+
+class _HandedOver:
+    """A local match whose covariance global SLAM's worker computes (``Slam._covariance_of``)."""
+
+    __slots__ = ("match", "size", "taken")
+
+    def __init__(self, match, size: int, taken):
+        self.match, self.size, self.taken = match, size, taken
+
+    @property
+    def covariance(self):
+        try:
+            return self.match.covariance
+        finally:
+            self.taken(self.size)
+            self.match = None
 
 
 @dataclass
@@ -112,6 +134,8 @@ class Slam:
             self.tracker = LocalSlam(cfg, loop_closure=mode == "global")
         self.global_slam = None
         self._background = None
+        self._handover_lock = threading.Lock()
+        self._handed_over = 0  # bytes of score volumes handed to the worker and not yet taken (``_covariance_of``)
         if mode == "global":
             from slam2d.backend.global_slam import GlobalSlam
 
@@ -176,10 +200,8 @@ class Slam:
         if gs is not None:
             t1 = time.perf_counter()
             if res.inserted:  # what global SLAM keeps of the scan, so the worker shares nothing that changes
-                # the match goes as it is (its arrays are not changed later): its covariance is computed
-                # on global SLAM's side, off local SLAM's thread
                 self._global(gs.add_node, NodeStamp(scan.index, scan.timestamp, scan.timestamp_text),
-                             np.array(res.local_pose, dtype=float), res.range_data.hits, res.match,
+                             np.array(res.local_pose, dtype=float), res.range_data.hits, self._covariance_of(res),
                              list(res.inserted_into), res.doubt)
             for sub in res.finished_submaps:
                 self._global(gs.add_finished_submap, sub)
@@ -193,6 +215,26 @@ class Slam:
         glob = local.copy() if gs is None else compose(gs.correction, local)
         self._stage("add_scan", (time.perf_counter() - t_call) * 1e3)  # the latency a caller sees
         return Estimate(i, scan.timestamp, local.copy(), glob, bool(res.inserted), res.quality)
+
+    def _covariance_of(self, res):
+        """The local match's covariance for global SLAM, or the match itself for global SLAM's worker to
+        compute it from (its arrays are not changed later): off local SLAM's thread, as long as the
+        score volumes handed over and not yet taken stay within ``HANDOVER_BYTES``; a worker far
+        behind (a sparse log's wide windows) gets the covariance computed here, so what waits in its
+        queue stays small. The covariance is the same either way."""
+        m = res.match
+        if m is None or self._background is None:
+            return res.covariance
+        size = sum(a.nbytes for a in (m.scores, m.raw_scores) if a is not None)
+        with self._handover_lock:
+            if self._handed_over + size > HANDOVER_BYTES:
+                return res.covariance
+            self._handed_over += size
+        return _HandedOver(m, size, self._taken)
+
+    def _taken(self, size: int) -> None:
+        with self._handover_lock:
+            self._handed_over -= size
 
     def sync(self) -> None:
         """Wait until global SLAM has taken in every scan added so far (it runs behind ``add_scan`` on

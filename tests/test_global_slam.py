@@ -259,7 +259,8 @@ def test_a_nodes_searches_run_cached_stacks_first_with_the_same_outcome(monkeypa
 
 def test_local_match_covariances_are_computed_on_global_slam_s_thread(monkeypatch):
     """``add_scan`` hands global SLAM the local match itself, whose covariance the worker computes:
-    none on the caller's thread, and the same graph as covariances computed up front."""
+    none on the caller's thread, and the same graph as covariances computed up front; with no
+    room for score volumes waiting in the worker's queue, every covariance is computed up front."""
     import threading
 
     from slam2d.matching.real_time import MatchResult
@@ -275,14 +276,23 @@ def test_local_match_covariances_are_computed_on_global_slam_s_thread(monkeypatc
     monkeypatch.setattr(MatchResult, "covariance", property(recorded))
     slam = Slam(SlamConfig())
     res = slam.run(scans)
-    assert threads and set(threads) == {"slam2d-global"}
+    assert threads and set(threads) == {"slam2d-global"} and slam._handed_over == 0
+
+    import slam2d.slam as slam_module
+
+    threads.clear()
+    monkeypatch.setattr(slam_module, "HANDOVER_BYTES", 0)
+    bounded = Slam(SlamConfig())
+    res_bounded = bounded.run(scans)
+    assert threads and set(threads) == {threading.main_thread().name}
+    assert np.array_equal(res.poses, res_bounded.poses)
     monkeypatch.undo()
 
     eager = Slam(SlamConfig())
     submit = eager._global
 
     def up_front(fn, *args):  # the covariance computed on the caller's thread, as before
-        if fn.__name__ == "add_node" and args[3] is not None:
+        if fn.__name__ == "add_node" and args[3] is not None and not isinstance(args[3], np.ndarray):
             args = args[:3] + (args[3].covariance,) + args[4:]
         submit(fn, *args)
 
