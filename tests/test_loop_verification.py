@@ -180,21 +180,20 @@ def test_consistency_check_rejects_an_injected_false_loop_on_the_simulator():
     gt = np.array([s.ground_truth for s in scans])
     slam = Slam(cfg)
     gs = slam.global_slam
-    search = gs._search
+    commit = gs._commit
     injected = []
 
-    def search_and_inject(k, j):
-        search(k, j)
-        rec = gs.records[-1]
+    def commit_and_inject(rec, loop):  # every search's record passes here, accepted or not
+        commit(rec, loop)
         if rec["accepted"] and not injected and len(gs.graph.loops) >= 15:
             false = dict(rec, relative_pose=list(compose(np.array(rec["relative_pose"]), [0.6, -0.4, 0.08])),
                          reason="accepted", in_final_graph=True, injected=True)
-            gs.graph.add_loop(rec["from_scan"], j, np.array(false["relative_pose"]),
+            gs.graph.add_loop(rec["from_scan"], rec["to_scan"], np.array(false["relative_pose"]),
                               [0.02, 0.02, math.radians(0.3)], false)
             gs.records.append(false)
             injected.append(false)
 
-    gs._search = search_and_inject
+    gs._commit = commit_and_inject
     slam.run(scans)
     assert injected, "no true loop to copy"
     false = injected[0]
