@@ -343,7 +343,9 @@ class LocalSlam:
             typical = self._typical_score()
             limit = None if typical is None else rt.min_relative_score * typical
             low = m is not None and not m.on_edge and limit is not None and m.score < limit
-            if m is None or m.on_edge or (low and not self._searched_in_vain(predicted)):
+            skipped = low and self._searched_in_vain(predicted)
+            self.num_recovery_skipped += skipped
+            if m is None or m.on_edge or (low and not skipped):
                 # not trusted: search wide around every prediction (Olson 2009's exhaustive search made
                 # cheap by branch-and-bound, Hess et al. 2016 Sec. V-C)
                 t_rec = time.perf_counter()
@@ -453,7 +455,6 @@ class LocalSlam:
         if (math.hypot(predicted[0] - at[0], predicted[1] - at[1]) >= rt.recovery_linear_window
                 or abs(math.remainder(predicted[2] - at[2], 2 * math.pi)) >= math.radians(rt.recovery_angular_window_deg)):
             return False
-        self.num_recovery_skipped += 1
         return True
 
     def _step_doubt(self, quality, pose, replaced, had_submap) -> np.ndarray:
