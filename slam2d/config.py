@@ -154,14 +154,22 @@ class MapConfig(_Section):
     """The exported occupancy map (ROS map_server PGM + YAML, and PNG)."""
 
     resolution: float = Field(0.05, gt=0.0, le=1.0, description="Cell size of the exported map [m].")
-    occupied_thresh: float = Field(0.65, gt=0.0, lt=1.0, description="map.yaml occupied_thresh.")
+    occupied_thresh: float = Field(0.65, gt=0.0, lt=1.0, description="map.yaml occupied_thresh (how map_server reads the image's pixels).")
     free_thresh: float = Field(0.196, gt=0.0, lt=1.0, description="map.yaml free_thresh.")
+    cells: Literal["evidence", "thresholds"] = Field(
+        "evidence", description="How a cell becomes occupied or free in the image. evidence: by the balance of what the scans saw there: occupied once its hits outweigh its misses by at least about one hit of the sensor model (its probability beyond halfway from 0.5 to grid.hit_probability), free once its misses outweigh its hits by about one miss (beyond halfway to grid.miss_probability), as occupancy maps by hit counts (GMapping, Karto) decide; a log with scans a metre apart then shows the free space it saw. thresholds: by occupied_thresh / free_thresh on the cell's probability, as map_saver does on a probability map (with Cartographer's update rates a cell turns free only after dozens of misses: dense logs only).")
 
     @model_validator(mode="after")
     def _thresholds(self):
         if self.free_thresh >= self.occupied_thresh:
             raise ValueError("free_thresh must be below occupied_thresh")
         return self
+
+    def cell_thresholds(self, grid: GridConfig) -> tuple[float, float]:
+        """(occupied above, free below): the probabilities that classify a cell of the image (``cells``)."""
+        if self.cells == "thresholds":
+            return self.occupied_thresh, self.free_thresh
+        return 0.5 * (0.5 + grid.hit_probability), 0.5 * (0.5 + grid.miss_probability)
 
 
 class SlamConfig(_Section):

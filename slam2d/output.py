@@ -44,7 +44,8 @@ class OutputDir:
         self.staged(name).write_text(json.dumps(obj, indent=2, default=_json_default) + "\n")
 
     def write_map(self, grid, cfg: SlamConfig, stem="map"):
-        paths = write_map(self.path, grid, cfg.map.occupied_thresh, cfg.map.free_thresh, stem=stem, suffix=PARTIAL)
+        paths = write_map(self.path, grid, cfg.map.occupied_thresh, cfg.map.free_thresh, stem=stem, suffix=PARTIAL,
+                          cells=cfg.map.cell_thresholds(cfg.grid))
         self.pending.extend(paths)
 
     def write_trajectory(self, name, stamps, poses):

@@ -94,7 +94,7 @@ class SlamResult:
                 from slam2d.grid.map_export import occupancy_image
                 from slam2d.io.results_mcap import write_results_mcap
 
-                img, ox, oy = occupancy_image(self.map, self.config.map.occupied_thresh, self.config.map.free_thresh)
+                img, ox, oy = occupancy_image(self.map, *self.config.map.cell_thresholds(self.config.grid))
                 write_results_mcap(out.staged("results.mcap"), mcap_scans, self.poses, img, self.map.resolution, (ox, oy))
             out.write_json("summary.json", self.summary)
             out.commit()

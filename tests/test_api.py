@@ -157,6 +157,48 @@ def test_map_image_is_top_row_first(tmp_path):
     assert (np.argwhere(img == OCCUPIED)[:, 0] == r).all()
 
 
+def test_map_cells_by_evidence_show_what_a_few_scans_saw(tmp_path):
+    """A place seen by a few scans (a sparse log): by evidence (the default), a cell that rays crossed
+    twice is free and a cell hit twice is occupied; map_saver's thresholds on Cartographer's
+    probabilities would leave both unknown. A cell hit once and crossed by many rays later (a
+    person who walked away) is free either way; a cell no ray reached stays unknown."""
+    from slam2d.config import SlamConfig
+    from slam2d.grid.map_export import FREE, OCCUPIED, UNKNOWN, read_pgm, write_map
+    from slam2d.grid.probability_grid import ProbabilityGrid
+
+    cfg = SlamConfig()
+    g = ProbabilityGrid.from_config(cfg.grid, resolution=0.1)
+    wall = np.array([[x, 3.0] for x in np.arange(-2.0, 2.01, 0.1)])
+    for o in ((0.0, 0.0), (0.05, 0.0)):  # two scans of a wall 3 m ahead
+        g.insert(o, wall)
+    g.insert((0.0, 0.0), np.array([[1.0, 0.0]]))  # a person 1 m to the right, once, then rays through that cell
+    for _ in range(60):
+        g.insert((0.0, 0.0), np.zeros((0, 2)), np.array([[1.5, 0.0]]))
+
+    def cell(img, ox, oy, x, y):
+        r = img.shape[0] - 1 - int(np.floor((y - oy) / g.resolution))
+        return img[r, int(np.floor((x - ox) / g.resolution))]
+
+    def export(mode):
+        out = tmp_path / mode
+        out.mkdir()
+        m = SlamConfig(map={"cells": mode}).map
+        write_map(out, g, m.occupied_thresh, m.free_thresh, cells=m.cell_thresholds(cfg.grid))
+        meta = dict(line.split(": ", 1) for line in (out / "map.yaml").read_text().splitlines())
+        ox, oy = (float(v) for v in meta["origin"].strip("[]").split(",")[:2])
+        assert float(meta["occupied_thresh"]) == m.occupied_thresh  # map_server's reading of the pixels
+        return read_pgm(out / "map.pgm"), ox, oy
+
+    img, ox, oy = export("evidence")
+    assert cell(img, ox, oy, 0.0, 3.02) == OCCUPIED
+    assert cell(img, ox, oy, 0.02, 1.52) == FREE
+    assert cell(img, ox, oy, 1.02, 0.02) == FREE
+    assert cell(img, ox, oy, -1.52, 0.52) == UNKNOWN  # inside the image's bounds, beside the rays
+    img, ox, oy = export("thresholds")
+    assert cell(img, ox, oy, 0.0, 3.02) == UNKNOWN and cell(img, ox, oy, 0.02, 1.52) == UNKNOWN
+    assert cell(img, ox, oy, 1.02, 0.02) == FREE
+
+
 def test_refinement_points_kept_compactly_are_the_matched_points():
     """A scan that became a node keeps only which of the node's hits it matched; the final refinement
     gets back exactly the points local SLAM matched (as float32), for nodes and other scans alike."""

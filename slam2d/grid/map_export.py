@@ -61,10 +61,13 @@ def read_pgm(path) -> np.ndarray:
     return np.frombuffer(data[pos:pos + w * h], dtype=np.uint8).reshape(h, w)
 
 
-def write_map(out_dir, grid: ProbabilityGrid, occupied_thresh: float, free_thresh: float, stem="map", suffix=""):
-    """Write ``stem.pgm``, ``stem.yaml``, ``stem.png`` (names get ``suffix`` while a run is in progress)."""
+def write_map(out_dir, grid: ProbabilityGrid, occupied_thresh: float, free_thresh: float, stem="map", suffix="",
+              cells: tuple[float, float] | None = None):
+    """Write ``stem.pgm``, ``stem.yaml``, ``stem.png`` (names get ``suffix`` while a run is in progress).
+    ``occupied_thresh`` / ``free_thresh`` go to the YAML; ``cells``: the (occupied, free) probability
+    thresholds that classify the cells (default: the same)."""
     out_dir = Path(out_dir)
-    img, ox, oy = occupancy_image(grid, occupied_thresh, free_thresh)
+    img, ox, oy = occupancy_image(grid, *(cells or (occupied_thresh, free_thresh)))
     write_pgm(out_dir / f"{stem}.pgm{suffix}", img)
     yaml_text = (f"image: {stem}.pgm\nmode: trinary\nresolution: {grid.resolution}\n"
                  f"origin: [{ox:.6f}, {oy:.6f}, 0.0]\nnegate: 0\n"
