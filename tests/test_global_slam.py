@@ -302,3 +302,35 @@ def test_local_match_covariances_are_computed_on_global_slam_s_thread(monkeypatc
     assert np.array_equal(res.poses, res_eager.poses)
     strip = lambda recs: [{k: v for k, v in r.items() if k != "search_ms"} for r in recs]  # noqa: E731
     assert strip(slam.global_slam.records) == strip(eager.global_slam.records)
+
+
+def test_a_node_near_a_submaps_track_searches_it_when_few_centres_are_near(monkeypatch):
+    """A submap built along a corridor sees far down it, and its content centre lies far from where
+    the robot stood. A node back in that corridor, with fewer than ``max_submaps_per_node`` submaps
+    whose centre is near, is matched against it as well (by the nearest pose it was built from);
+    with enough centres near, they decide alone; the newest submaps stay with local SLAM."""
+    from types import SimpleNamespace
+
+    cfg = SlamConfig()
+    assert cfg.loop_closure.max_submaps_per_node == 3 and cfg.loop_closure.exclude_recent_submaps == 2
+    gs = GlobalSlam(cfg)
+    tracks = {0: (0.0, 0.0), 1: (0.0, 10.0), 2: (0.0, 20.0), 3: (0.0, 30.0), 4: (0.0, 0.2), 5: (0.0, 0.3)}
+    for k, (x0, y) in tracks.items():  # five nodes a metre apart along x
+        idx = list(range(10 * k, 10 * k + 5))
+        for i, j in enumerate(idx):
+            gs.nodes[j] = {"local": np.array([x0 + i, y, 0.0])}
+        gs.matchers[k] = SimpleNamespace(submap=SimpleNamespace(node_indices=idx))
+    node = np.array([0.0, 0.5, 0.0])
+
+    def centres(c):
+        monkeypatch.setattr(gs, "_submap_centres", lambda: (np.arange(6), np.array([[x, y, 0.0] for x, y in c])))
+
+    # submap 0's centre 30 m down the corridor, submap 1's 9.7 m away, the others far; 4 and 5 are newest
+    centres([(30, 0), (2, 10), (2, 20), (2, 30), (0, 0.2), (0, 0.3)])
+    assert gs._candidate_submaps(node) == [1, 0]
+    # three centres near: they are the node's submaps, nearest first
+    centres([(30, 0), (2, 10), (0, 4), (1, -6), (0, 0.2), (0, 0.3)])
+    assert gs._candidate_submaps(node) == [2, 3, 1]
+    # no centre near: the nearest tracks decide (submap 1's at 9.5 m; 2's and 3's beyond reach)
+    centres([(30, 0), (30, 10), (30, 20), (30, 30), (0, 0.2), (0, 0.3)])
+    assert gs._candidate_submaps(node) == [0, 1]

@@ -58,6 +58,9 @@ class GlobalSlam:
         self._centres: dict[int, np.ndarray] = {}  # per finished submap: ``_centre_from_anchor``
         self._centres_at = None                      # ``_submap_centres``'s cache and when it was made
         self._centres_all = (np.zeros(0, dtype=np.int64), np.zeros((0, 3)))
+        self._tracks_at = None  # ``_submap_tracks``'s cache and when it was made
+        self._track_of: dict[int, np.ndarray] = {}  # per finished submap: its nodes' global positions
+        self._tracks = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros((0, 2)))
         self.wide_searches = 0
         self.wide_accepted = 0
         self.sampled: list[int] = []  # nodes matched against finished submaps (and new submaps against them)
@@ -185,13 +188,7 @@ class GlobalSlam:
 
     # ---- searching
     def _search_node(self, j):
-        node_g = self.global_node(j)
-        newest = max(self.matchers, default=-1)
-        ks, centres = self._submap_centres()
-        d = np.hypot(node_g[0] - centres[:, 0], node_g[1] - centres[:, 1])
-        near = (ks <= newest - self.lc.exclude_recent_submaps) & (d < self.lc.max_constraint_distance)
-        cands = list(zip(d[near].tolist(), ks[near].tolist()))
-        chosen = [k for _, k in sorted(cands)[: self.lc.max_submaps_per_node]]
+        chosen = self._candidate_submaps(self.global_node(j))
         # searched with the submaps whose stacks are cached first (a node's nearest submaps recur
         # at the next sampled node, and taken in one fixed order they make the cache rebuild every
         # stack it holds fewer than), committed nearest first: the searches of one node are
@@ -200,6 +197,71 @@ class GlobalSlam:
         for k in chosen:
             rec, loop, _ = done[k]
             self._commit(rec, loop)
+
+    def _candidate_submaps(self, node_g) -> list[int]:
+        """The finished submaps a node at ``node_g`` (global) is matched against: at most
+        ``max_submaps_per_node``, leaving the newest to local SLAM. First those whose content centre
+        lies within ``max_constraint_distance``, nearest first; then, where they are fewer, those
+        built from a pose that close, nearest pose first. A submap built along a corridor and
+        seeing far down it has its centre far from where the robot stood, so a node back in that
+        corridor finds it only by the second rule (fr-clinic: most of its revisits)."""
+        lc = self.lc
+        n = lc.max_submaps_per_node
+        newest = max(self.matchers, default=-1)
+        ks, centres = self._submap_centres()
+        d = np.hypot(node_g[0] - centres[:, 0], node_g[1] - centres[:, 1])
+        near = (ks <= newest - lc.exclude_recent_submaps) & (d < lc.max_constraint_distance)
+        chosen = [k for _, k in sorted(zip(d[near].tolist(), ks[near].tolist()))[:n]]
+        if len(chosen) < n:
+            tk, starts, track = self._submap_tracks()
+            if len(tk):
+                dn = np.minimum.reduceat(np.hypot(track[:, 0] - node_g[0], track[:, 1] - node_g[1]), starts)
+                ok = (tk <= newest - lc.exclude_recent_submaps) & (dn < lc.max_constraint_distance)
+                more = sorted((a, k) for a, k in zip(dn[ok].tolist(), tk[ok].tolist()) if k not in chosen)
+                chosen += [k for _, k in more[: n - len(chosen)]]
+        return chosen
+
+    def _submap_tracks(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(ids, start offsets, (M, 2) global positions) of the nodes of every finished submap that
+        has nodes, submap after submap; like ``_submap_centres`` they change only at an optimization
+        or a finished submap, and a submap's positions are computed once between optimizations."""
+        key = (self.optimizations, len(self.matchers))
+        if self._tracks_at != key:
+            if self._tracks_at is None or self._tracks_at[0] != self.optimizations:
+                self._track_of = {}
+            new = {k: np.array([j for j in m.submap.node_indices if j in self.nodes], dtype=np.int64)
+                   for k, m in self.matchers.items() if k not in self._track_of}
+            if new:  # one pass over the graph's poses for all of them
+                xy = self._global_xy(np.concatenate(list(new.values())))
+                at = 0
+                for k, own in new.items():
+                    self._track_of[k] = xy[at:at + len(own)]
+                    at += len(own)
+            ks = [k for k in self.matchers if len(self._track_of[k])]
+            sizes = [len(self._track_of[k]) for k in ks]
+            self._tracks = (np.array(ks, dtype=np.int64), np.cumsum([0] + sizes[:-1]).astype(np.int64),
+                            np.concatenate([self._track_of[k] for k in ks]) if ks else np.zeros((0, 2)))
+            self._tracks_at = key
+        return self._tracks
+
+    def _global_xy(self, js: np.ndarray) -> np.ndarray:
+        """(N, 2) global positions of nodes ``js``: ``global_node``'s, for many nodes at once."""
+        out = np.empty((len(js), 2))
+        have = np.zeros(len(js), dtype=bool)
+        if self.optimizations and len(js):
+            ids, poses = self.graph.all_node_poses()
+            if len(ids):
+                at = np.minimum(np.searchsorted(ids, js), len(ids) - 1)
+                have = ids[at] == js
+                out[have] = poses[at[have], :2]
+        rest = np.flatnonzero(~have)
+        if len(rest):
+            local = np.array([self.nodes[int(j)]["local"] for j in js[rest]], dtype=float).reshape(-1, 3)
+            cx, cy, ct = self.correction
+            c, s_ = math.cos(ct), math.sin(ct)
+            out[rest, 0] = cx + c * local[:, 0] - s_ * local[:, 1]
+            out[rest, 1] = cy + s_ * local[:, 0] + c * local[:, 1]
+        return out
 
     def _submap_centres(self) -> tuple[np.ndarray, np.ndarray]:
         """(ids, (K, 3) global content centres) of the finished submaps, kept until the next
