@@ -110,7 +110,7 @@ class LoopClosureConfig(_Section):
     max_submaps_per_node: int = Field(3, ge=1, description="A sampled node is matched against at most this many nearest finished submaps.")
     max_searches_per_submap: int = Field(8, ge=0, description="A newly finished submap is matched against at most this many earlier nearby nodes.")
     exclude_recent_submaps: int = Field(2, ge=0, description="The newest finished submaps are left to local SLAM.")
-    max_constraint_distance: float = Field(10.0, gt=0.0, description="A sampled node is matched against the finished submaps whose content centre lies this close to its estimate [m], nearest first, and where they are fewer than max_submaps_per_node, against those built from a pose this close (a submap seeing far down a corridor has its centre far from where the robot stood).")
+    max_constraint_distance: float = Field(10.0, gt=0.0, description="A sampled node is matched against the finished submaps whose content centre lies this close to its estimate [m], nearest first; where there is none, against those built from a pose this close (a submap seeing far down a corridor has its centre far from where the robot stood).")
     min_margin: float = Field(0.02, ge=0.0, description="A match is ambiguous, and rejected, unless its score beats the best separated local maximum around it (exhaustive search in the margin window) by this much.")
     margin_window: float = Field(0.6, gt=0.0, description="Half-width of the x/y window searched exhaustively around a refined loop match, for its margin and covariance [m].")
     margin_window_deg: float = Field(2.0, gt=0.0, description="Half-width of that window's rotation [deg].")

@@ -304,11 +304,11 @@ def test_local_match_covariances_are_computed_on_global_slam_s_thread(monkeypatc
     assert strip(slam.global_slam.records) == strip(eager.global_slam.records)
 
 
-def test_a_node_near_a_submaps_track_searches_it_when_few_centres_are_near(monkeypatch):
+def test_a_node_near_a_submaps_track_searches_it_when_no_centre_is_near(monkeypatch):
     """A submap built along a corridor sees far down it, and its content centre lies far from where
-    the robot stood. A node back in that corridor, with fewer than ``max_submaps_per_node`` submaps
-    whose centre is near, is matched against it as well (by the nearest pose it was built from);
-    with enough centres near, they decide alone; the newest submaps stay with local SLAM."""
+    the robot stood. A node back in that corridor with no submap whose centre is near is matched
+    against the submaps built from poses near it, nearest pose first; where centres are near, they
+    decide alone; the newest submaps stay with local SLAM."""
     from types import SimpleNamespace
 
     cfg = SlamConfig()
@@ -327,7 +327,7 @@ def test_a_node_near_a_submaps_track_searches_it_when_few_centres_are_near(monke
 
     # submap 0's centre 30 m down the corridor, submap 1's 9.7 m away, the others far; 4 and 5 are newest
     centres([(30, 0), (2, 10), (2, 20), (2, 30), (0, 0.2), (0, 0.3)])
-    assert gs._candidate_submaps(node) == [1, 0]
+    assert gs._candidate_submaps(node) == [1]
     # three centres near: they are the node's submaps, nearest first
     centres([(30, 0), (2, 10), (0, 4), (1, -6), (0, 0.2), (0, 0.3)])
     assert gs._candidate_submaps(node) == [2, 3, 1]
