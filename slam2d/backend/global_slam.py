@@ -25,7 +25,7 @@ from slam2d.backend.consistency import ConsistencyParams, PairCache, inconsisten
 from slam2d.backend.drift import DriftBound
 from slam2d.backend.loop_closure import StackCache, SubmapMatcher, loop_points
 from slam2d.backend.wide_search import coarse_grid, coarse_match, frame_offset, submap_content
-from slam2d.geometry import between, compose, inverse
+from slam2d.geometry import between, compose, inverse, transform_points
 from slam2d.matching.real_time import unmatched_covariance
 
 log = logging.getLogger(__name__)
@@ -59,7 +59,6 @@ class GlobalSlam:
         self._centres_at = None                      # ``_submap_centres``'s cache and when it was made
         self._centres_all = (np.zeros(0, dtype=np.int64), np.zeros((0, 3)))
         self._tracks_at = None  # ``_submap_tracks``'s cache and when it was made
-        self._track_of: dict[int, np.ndarray] = {}  # per finished submap: its nodes' global positions
         self._tracks = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros((0, 2)))
         self.wide_searches = 0
         self.wide_accepted = 0
@@ -224,29 +223,20 @@ class GlobalSlam:
 
     def _submap_tracks(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(ids, start offsets, (M, 2) global positions) of the nodes of every finished submap that
-        has nodes, submap after submap; like ``_submap_centres`` they change only at an optimization
-        or a finished submap, and a submap's positions are computed once between optimizations."""
+        has nodes, submap after submap; kept, like ``_submap_centres``, until the next optimization
+        or the next finished submap (the estimates change only then)."""
         key = (self.optimizations, len(self.matchers))
         if self._tracks_at != key:
-            if self._tracks_at is None or self._tracks_at[0] != self.optimizations:
-                self._track_of = {}
-            new = {k: np.array([j for j in m.submap.node_indices if j in self.nodes], dtype=np.int64)
-                   for k, m in self.matchers.items() if k not in self._track_of}
-            if new:  # one pass over the graph's poses for all of them
-                xy = self._global_xy(np.concatenate(list(new.values())))
-                at = 0
-                for k, own in new.items():
-                    self._track_of[k] = xy[at:at + len(own)]
-                    at += len(own)
-            ks = [k for k in self.matchers if len(self._track_of[k])]
-            sizes = [len(self._track_of[k]) for k in ks]
+            own = {k: [j for j in m.submap.node_indices if j in self.nodes] for k, m in self.matchers.items()}
+            ks = [k for k, js in own.items() if js]
+            sizes = [len(own[k]) for k in ks]
             self._tracks = (np.array(ks, dtype=np.int64), np.cumsum([0] + sizes[:-1]).astype(np.int64),
-                            np.concatenate([self._track_of[k] for k in ks]) if ks else np.zeros((0, 2)))
+                            self._global_xy(np.array([j for k in ks for j in own[k]], dtype=np.int64)))
             self._tracks_at = key
         return self._tracks
 
     def _global_xy(self, js: np.ndarray) -> np.ndarray:
-        """(N, 2) global positions of nodes ``js``: ``global_node``'s, for many nodes at once."""
+        """(N, 2) global positions of nodes ``js``: ``global_node``'s, for many nodes in one pass."""
         out = np.empty((len(js), 2))
         have = np.zeros(len(js), dtype=bool)
         if self.optimizations and len(js):
@@ -257,11 +247,8 @@ class GlobalSlam:
                 out[have] = poses[at[have], :2]
         rest = np.flatnonzero(~have)
         if len(rest):
-            local = np.array([self.nodes[int(j)]["local"] for j in js[rest]], dtype=float).reshape(-1, 3)
-            cx, cy, ct = self.correction
-            c, s_ = math.cos(ct), math.sin(ct)
-            out[rest, 0] = cx + c * local[:, 0] - s_ * local[:, 1]
-            out[rest, 1] = cy + s_ * local[:, 0] + c * local[:, 1]
+            local = np.array([self.nodes[int(j)]["local"][:2] for j in js[rest]], dtype=float).reshape(-1, 2)
+            out[rest] = transform_points(self.correction, local)
         return out
 
     def _submap_centres(self) -> tuple[np.ndarray, np.ndarray]:
