@@ -138,3 +138,34 @@ def test_unmatched_scans_get_the_loosest_covariance():
     assert np.all(np.linalg.eigvalsh(cov_u - cov_m) > 0)
     # and no matched window can hold a variance larger than the unmatched one
     assert prior[0, 0] >= rt.linear_search_window ** 2 and prior[2, 2] >= math.radians(rt.angular_search_window_deg) ** 2
+
+
+def test_floored_matches_the_eigendecomposition_it_shortcuts():
+    """``_floored`` skips the eigendecomposition when every eigenvalue is already above the floor;
+    on random covariances, tight and loose, with and without off-diagonal terms, it must agree with
+    the plain rule (symmetrize, raise the variances, raise the eigenvalues to the smallest floor)."""
+    from slam2d.backend.global_slam import _floored
+
+    def reference(cov, st, sr):
+        c = 0.5 * (cov + cov.T)
+        floor = np.array([st * st, st * st, sr * sr])
+        c[np.diag_indices(3)] = np.maximum(np.diag(c), floor)
+        w, v = np.linalg.eigh(c)
+        return (v * np.maximum(w, floor.min())) @ v.T, w.min() > floor.min()
+
+    rng = np.random.default_rng(3)
+    shortcut = raised = 0
+    for _ in range(2000):
+        a = rng.normal(size=(3, 3)) * 10.0 ** rng.uniform(-3, 0, size=(3, 1))
+        cov = a @ a.T + np.diag(10.0 ** rng.uniform(-8, -1, size=3))
+        if rng.random() < 0.3:  # an asymmetric input (as summed float terms can be)
+            cov[0, 1] += 1e-9
+        st, sr = 10.0 ** rng.uniform(-3, -1), math.radians(10.0 ** rng.uniform(-1, 1))
+        got, (want, above) = _floored(cov, st, sr), reference(cov.copy(), st, sr)
+        assert np.allclose(got, want, rtol=1e-9, atol=1e-15)
+        assert np.allclose(got, got.T)
+        assert np.linalg.eigvalsh(got).min() >= min(st * st, sr * sr) * (1 - 1e-9)
+        shortcut += above
+        raised += not above
+    assert shortcut > 100 and raised > 100  # both paths were exercised
+    assert np.array_equal(_floored(None, 0.1, 0.2), np.diag([0.1 ** 2, 0.1 ** 2, 0.2 ** 2]))

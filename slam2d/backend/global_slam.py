@@ -60,6 +60,7 @@ class GlobalSlam:
         self._centres_all = (np.zeros(0, dtype=np.int64), np.zeros((0, 3)))
         self._tracks_at = None  # ``_submap_tracks``'s cache and when it was made
         self._tracks = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros((0, 2)))
+        self._own: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # ``_submap_nodes``'s cache
         self.wide_searches = 0
         self.wide_accepted = 0
         self.sampled: list[int] = []  # nodes matched against finished submaps (and new submaps against them)
@@ -170,18 +171,16 @@ class GlobalSlam:
         self.min_scores[submap.index] = min_score_for(self.lc, m.self_score(own))
         submap.grid.pack()  # searches read the values from the matcher's cached stack from now on
         # earlier nodes near the new submap (sampled), excluding those inside it
-        inside = set(submap.node_indices)
-        first = min(inside, default=0)
+        first = min(submap.node_indices, default=0)
         center = compose(self.global_submap(submap.index), self._centre_from_anchor(submap.index))
-        cands = []
-        for j in self.sampled:
-            if j in inside or j >= first:
-                continue
-            d = np.hypot(*(self.global_node(j)[:2] - center[:2]))
-            if d < self.lc.max_constraint_distance:
-                cands.append((d, j))
-        for _, j in sorted(cands)[: self.lc.max_searches_per_submap]:
-            self._search(submap.index, j)
+        sampled = np.array(self.sampled, dtype=np.int64)
+        sampled = sampled[sampled < first]  # the submap's own nodes come from ``first`` on
+        xy = self._global_xy(sampled)
+        d = np.hypot(xy[:, 0] - center[0], xy[:, 1] - center[1])
+        near = d < self.lc.max_constraint_distance
+        sampled, d = sampled[near], d[near]
+        for i in np.lexsort((sampled, d))[: self.lc.max_searches_per_submap]:  # nearest first
+            self._search(submap.index, int(sampled[i]))
         if self.lc.wide_search:
             self._search_wide(submap)
 
@@ -338,8 +337,8 @@ class GlobalSlam:
 
     def _middle_node(self, k) -> int:
         """The node halfway along submap ``k``'s stretch of the trajectory."""
-        ids = [j for j in self.matchers[k].submap.node_indices if j in self.nodes]
-        return ids[len(ids) // 2] if ids else self.submap_anchor[k]
+        ids, _ = self._submap_nodes(k)
+        return int(ids[len(ids) // 2]) if len(ids) else self.submap_anchor[k]
 
     def _window(self, a, j) -> tuple[float, float]:
         """The regular search window between nodes ``a`` and ``j``: the drift bound of their estimates
@@ -457,11 +456,24 @@ class GlobalSlam:
 
     def _nearest_submap_node(self, k, pose) -> int:
         """The node of submap ``k`` whose local pose lies nearest to ``pose`` (grid frame); the anchor without one."""
-        ids = [i for i in self.matchers[k].submap.node_indices if i in self.nodes]
-        if pose is None or not ids:
+        ids, xy = self._submap_nodes(k)
+        if pose is None or not len(ids):
             return self.submap_anchor[k]
-        xy = np.array([self.nodes[i]["local"][:2] for i in ids])
         return int(ids[int(np.argmin(np.hypot(xy[:, 0] - pose[0], xy[:, 1] - pose[1])))])
+
+    def _submap_nodes(self, k) -> tuple[np.ndarray, np.ndarray]:
+        """(ids, (N, 2) local positions) of finished submap ``k``'s nodes, in insertion order. Kept once
+        every node is known: a finished submap takes no more nodes and local poses never change."""
+        got = self._own.get(k)
+        if got is not None:
+            return got
+        node_indices = self.matchers[k].submap.node_indices
+        ids = [i for i in node_indices if i in self.nodes]
+        got = (np.array(ids, dtype=np.int64),
+               np.array([self.nodes[i]["local"][:2] for i in ids], dtype=float).reshape(-1, 2))
+        if len(ids) == len(node_indices):
+            self._own[k] = got
+        return got
 
     def _check_consistency(self):
         """Remove loops that contradict other loops through the local chain (``consistency.py``)."""
@@ -540,10 +552,20 @@ def node_frame_covariance(cov, theta) -> np.ndarray:
 
 
 def _floored(cov, sigma_t, sigma_r) -> np.ndarray:
-    c = np.diag([sigma_t ** 2, sigma_t ** 2, sigma_r ** 2]) if cov is None else np.array(cov, dtype=float)
-    c = 0.5 * (c + c.T)
-    floor = np.array([sigma_t ** 2, sigma_t ** 2, sigma_r ** 2])
-    d = np.diag(c)
-    c[np.diag_indices(3)] = np.maximum(d, floor)
+    """``cov`` made symmetric, its variances raised to the floor's and its eigenvalues to the smallest
+    floor (``None``: the floor itself)."""
+    t2, r2 = sigma_t * sigma_t, sigma_r * sigma_r
+    if cov is None:
+        return np.diag([t2, t2, r2])
+    a = np.asarray(cov, dtype=float).tolist()
+    xx, yy, tt = max(a[0][0], t2), max(a[1][1], t2), max(a[2][2], r2)
+    xy, xt, yt = 0.5 * (a[0][1] + a[1][0]), 0.5 * (a[0][2] + a[2][0]), 0.5 * (a[1][2] + a[2][1])
+    c = np.array([[xx, xy, xt], [xy, yy, yt], [xt, yt, tt]])
+    m = min(t2, r2)
+    p, q, r = xx - m, yy - m, tt - m
+    # every eigenvalue above the floor already (c - m·I positive definite, Sylvester's criterion):
+    # nothing to raise, and the decomposition below would give ``c`` back up to rounding
+    if p > 0 and p * q - xy * xy > 0 and p * (q * r - yt * yt) - xy * (xy * r - yt * xt) + xt * (xy * yt - q * xt) > 0:
+        return c
     w, v = np.linalg.eigh(c)
-    return (v * np.maximum(w, floor.min())) @ v.T
+    return (v * np.maximum(w, m)) @ v.T
