@@ -6,6 +6,10 @@ Plain-numpy oracles live in ``tests/test_range_data.py`` (the adaptive voxel fil
 bisection kept there), ``tests/test_frontend.py`` (tangents),
 ``tests/test_health.py`` (``pick_neighbours``) and, for ``free_space_counts``,
 ``slam2d.health._violation`` (compared in ``tests/test_health.py``).
+
+Kernels that run for a few microseconds per scan keep the interpreter lock (no ``nogil``): released,
+it goes to global SLAM's worker thread whenever that one waits for it, and local SLAM then waits up
+to the switch interval (``backend/background.py``) to get it back after microseconds of work.
 """
 from __future__ import annotations
 
@@ -24,7 +28,7 @@ def _put(out, k, length, angle, ox, oy, c0, s0):
     out[k, 1] = oy + s0 * px + c0 * py
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def scan_to_range_data(ranges, valid, no_return, angle_min, angle_increment, min_range, max_range, miss_length,
                        ox, oy, oth, hits, misses):
     """Hits and free-space ray ends of one scan in the tracking frame (laser mount ``ox, oy, oth``).
@@ -58,7 +62,7 @@ def scan_to_range_data(ranges, valid, no_return, angle_min, angle_increment, min
     return nh, nm
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def voxel_filter_indices(points, size):
     """Indices of the first point (in input order) of every occupied ``size`` × ``size`` cell, increasing."""
     n = points.shape[0]
@@ -128,7 +132,7 @@ def scan_tangents(points, neighbours, min_baseline, max_gap):
     return tangent, have
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def classify_readings(ranges, no_return_value, valid, no_return):
     """Per beam: ``no_return`` = +inf or at/above ``no_return_value`` (NaN: none); ``valid`` = a
     positive finite reading that is not a no-return. Returns (index of the first negative
@@ -149,7 +153,7 @@ def classify_readings(ranges, no_return_value, valid, no_return):
     return first_negative, all_nan
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def tangent_moments(points, neighbours, min_baseline, max_gap):
     """(how many points have a tangent, Σ tx², Σ tx·ty, Σ ty²) over the tangents of ``scan_tangents``:
     the point-to-line information of a scan, summed in beam order."""

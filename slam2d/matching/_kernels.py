@@ -3,6 +3,8 @@
 Grid arrays are ``values[row, col]`` (row = y); ``origin`` is the lower-left corner of cell
 (0, 0); a point falls in cell ``floor((p - origin) / resolution)``. Cells outside the array
 read as ``unknown``.
+
+``apply_delta_penalty``, microseconds per scan, keeps the interpreter lock (``slam2d/_kernels.py`` says why).
 """
 from __future__ import annotations
 
@@ -503,7 +505,7 @@ def score_covariance(scores, offsets, angles, n_points, out):
     out[1, 2] = out[2, 1] = syt / s0 - my * mt
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def apply_delta_penalty(scores, angles, w_t, w_r, res):
     """Multiply ``scores[a, dy + w, dx + w]`` in place by the delta penalty exp(−(w_t·d + w_r·|Δθ|)²),
     d = |(dx, dy)|·res (the same factor ``branch_and_bound`` applies to single candidates)."""
