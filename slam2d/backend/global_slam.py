@@ -226,11 +226,12 @@ class GlobalSlam:
         or the next finished submap (the estimates change only then)."""
         key = (self.optimizations, len(self.matchers))
         if self._tracks_at != key:
-            own = {k: [j for j in m.submap.node_indices if j in self.nodes] for k, m in self.matchers.items()}
-            ks = [k for k, js in own.items() if js]
-            sizes = [len(own[k]) for k in ks]
-            self._tracks = (np.array(ks, dtype=np.int64), np.cumsum([0] + sizes[:-1]).astype(np.int64),
-                            self._global_xy(np.array([j for k in ks for j in own[k]], dtype=np.int64)))
+            own = [(k, self._submap_nodes(k)[0]) for k in self.matchers]
+            own = [(k, ids) for k, ids in own if len(ids)]
+            sizes = [len(ids) for _, ids in own]
+            js = np.concatenate([ids for _, ids in own]) if own else np.zeros(0, dtype=np.int64)
+            self._tracks = (np.array([k for k, _ in own], dtype=np.int64),
+                            np.cumsum([0] + sizes[:-1]).astype(np.int64), self._global_xy(js))
             self._tracks_at = key
         return self._tracks
 
@@ -354,7 +355,7 @@ class GlobalSlam:
         (``wide_search.py``)."""
         lc = self.lc
         s = submap.index
-        own = [j for j in submap.node_indices if j in self.nodes]
+        own = self._submap_nodes(s)[0].tolist()
         targets = [k for k in self.matchers if k < s - lc.exclude_recent_submaps]
         if not own or not targets:
             return
