@@ -398,7 +398,8 @@ class LocalSlam:
                     self.num_matched += 1
                     self.num_weak += 1
                 elif self.untrusted_in_a_row >= rt.max_untrusted_in_a_row:
-                    # on the edge several times in a row: the robot did move that way; map it
+                    # on the edge several times in a row: the robot did move that way; map it, in new
+                    # submaps (``ActiveSubmaps.insert``: what was mapped before stays as it was)
                     quality = "forced"
                     self.num_matched += 1
                     self.num_forced += 1
@@ -423,7 +424,8 @@ class LocalSlam:
             t3 = time.perf_counter()
             local = rd.transformed(pose)
             with self.cores.share():
-                finished = self.submaps.insert(pose, local.origin, local.hits, local.misses, scan.index)
+                finished = self.submaps.insert(pose, local.origin, local.hits, local.misses, scan.index,
+                                               restart=quality == "forced")
             inserted_into = self.submaps.last_inserted_into
             if quality == "trusted":
                 kept_match = match
@@ -438,7 +440,8 @@ class LocalSlam:
                               active_submap=self.submaps.matching_submap, finished_submaps=finished,
                               inserted_into=inserted_into, match=kept_match, points=points, point_index=kept,
                               quality=quality, doubt=doubt,
-                              replaced=None if recovered is None else np.array(recovered, dtype=float))
+                              replaced=None if recovered is None else np.array(recovered, dtype=float),
+                              fresh_start=inserted and quality == "forced")
 
     def _searched_in_vain(self, predicted) -> bool:
         """Whether a low-scoring peak inside the window skips the recovery search: one made for such a

@@ -202,7 +202,7 @@ class Slam:
             if res.inserted:  # what global SLAM keeps of the scan, so the worker shares nothing that changes
                 self._global(gs.add_node, NodeStamp(scan.index, scan.timestamp, scan.timestamp_text),
                              np.array(res.local_pose, dtype=float), res.range_data.hits, self._covariance_of(res),
-                             list(res.inserted_into), res.doubt)
+                             list(res.inserted_into), res.doubt, res.fresh_start)
             for sub in res.finished_submaps:
                 self._global(gs.add_finished_submap, sub)
             self._stage("global", (time.perf_counter() - t1) * 1e3)

@@ -97,6 +97,8 @@ class MatchingResult:
     doubt: tuple = (0.0, 0.0)
     #: the pose a recovered match replaced (the real-time window's match, or the prediction), else None
     replaced: np.ndarray | None = None
+    #: local SLAM lost track before this scan and started new submaps with it (``ActiveSubmaps.insert``)
+    fresh_start: bool = False
 
     @property
     def covariance(self) -> np.ndarray | None:

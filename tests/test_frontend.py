@@ -584,3 +584,46 @@ def test_a_vain_recovery_is_not_repeated_until_the_robot_left_its_window():
     for a, b in zip(searched, searched[1:]):
         assert (math.hypot(*(b[:2] - a[:2])) >= rt.recovery_linear_window
                 or abs(math.remainder(b[2] - a[2], 2 * math.pi)) >= math.radians(rt.recovery_angular_window_deg))
+
+
+def _teleported(scans, k, gap):
+    """``scans`` without ``scans[k:k + gap]``, the clock and the odometry closed over the hole: the robot
+    seems to jump from scan k-1 to scan k+gap between two scan periods, and no prediction (odometry,
+    constant velocity, no motion) knows of it. In the bundled log at k = 170, gap = 25 it turns 90° and
+    moves 2.5 m: beyond every window, so local SLAM loses track and forces the scan in."""
+    import dataclasses
+    from slam2d.geometry import inverse
+
+    before, after = scans[k - 1], scans[k + gap]
+    hide = between(before.odom_pose, after.odom_pose)
+    shift = after.timestamp - before.timestamp - (scans[k].timestamp - before.timestamp)
+    out = list(scans[:k])
+    for s in scans[k + gap:]:
+        odom = compose(before.odom_pose, compose(inverse(hide), between(before.odom_pose, s.odom_pose)))
+        out.append(dataclasses.replace(s, timestamp=s.timestamp - shift, odom_pose=odom))
+    return out
+
+
+def test_losing_track_starts_new_submaps_instead_of_overlaying_the_old():
+    """A scan forced in from the edge of every window may be metres and tens of degrees off. Inserted
+    into the active submaps it would overlay what they mapped before with a turned copy, and every
+    later match against them would inherit the mix; so the active submaps are finished as they were,
+    and the forced scan starts a new one (the pose graph can then turn it against them)."""
+    scans = _teleported(_bundled_scans(320), 170, 25)
+    tracker = LocalSlam(config_from_dict({}), loop_closure=True)
+    results = [tracker.add_scan(s) for s in scans]
+    forced = [i for i, r in enumerate(results) if r.quality == "forced"]
+    assert len(forced) == 1 and tracker.num_forced == 1
+    f = forced[0]
+    assert all(r.quality == "untrusted" for r in results[f - 3:f])  # not inserted: the submaps never saw them
+    before = {k for k, _ in next(r for r in reversed(results[:f]) if r.inserted).inserted_into}
+    assert {s.index for s in results[f].finished_submaps} == before  # finished, both, by the forced scan
+    (new, _), = results[f].inserted_into
+    assert new > max(before)
+    by_index = {s.index: s for s in tracker.all_submaps()}
+    first = scans[f].index
+    assert all(max(by_index[k].node_indices) < first for k in before)  # the old ones hold nothing from the guess on
+    assert by_index[new].node_indices[0] == first
+    # no other step finished a submap early: without the jump, the same scans give no forced insertion
+    plain = LocalSlam(config_from_dict({}), loop_closure=True)
+    assert not any(plain.add_scan(s).quality == "forced" for s in _bundled_scans(320))

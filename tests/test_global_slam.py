@@ -334,3 +334,50 @@ def test_a_node_near_a_submaps_track_searches_it_when_no_centre_is_near(monkeypa
     # no centre near: the nearest tracks decide (submap 1's at 9.5 m; 2's and 3's beyond reach)
     centres([(30, 0), (30, 10), (30, 20), (30, 30), (0, 0.2), (0, 0.3)])
     assert gs._candidate_submaps(node) == [0, 1]
+
+
+def test_a_fresh_start_of_local_slam_hangs_on_a_loose_step_and_is_searched_against_the_old_submaps():
+    """Local SLAM loses track (a 90° jump no prediction knows of, ``test_frontend._teleported``) and
+    starts new submaps at the forced scan. No submap then holds both that node and the one before, so
+    the step between them is the only link: a constraint as loose as local SLAM's doubt about the step
+    (the recovery window), without which the graph would fall apart. And the submaps finished by the
+    fresh start, though the newest, are searched at once: local SLAM no longer matches against them."""
+    import gtsam
+    from conftest import BUNDLED
+    from slam2d.config import config_from_dict
+    from slam2d.io.source import open_source
+    from test_frontend import _teleported
+
+    from slam2d.observer import Observer
+
+    class Qualities(Observer):
+        def __init__(self):
+            self.forced = []
+
+        def on_scan(self, scan, result):
+            if result.quality == "forced":
+                self.forced.append(scan.index)
+
+    scans = _teleported(list(open_source(BUNDLED))[:330], 170, 25)
+    seen = Qualities()
+    slam = Slam(config_from_dict({"loop_closure": {"background": False}}), observer=seen)
+    for s in scans:
+        slam.add_scan(s)
+    gs = slam.global_slam
+    (j,) = seen.forced
+    prev = gs.node_order[gs.node_order.index(j) - 1]
+    assert not set(gs.nodes[j]["submaps"]) & set(gs.nodes[prev]["submaps"])
+    assert gs._segment_start == min(gs.nodes[j]["submaps"])
+    g = gs.graph.graph
+    steps = [g.at(i) for i in range(g.size()) if g.exists(i)
+             and set(g.at(i).keys()) == {gtsam.symbol("n", prev), gtsam.symbol("n", j)}]
+    assert len(steps) == 1
+    rt = slam.config.real_time_matcher
+    sigma = np.sqrt(np.diag(steps[0].noiseModel().covariance()))
+    assert sigma[2] >= math.radians(rt.recovery_angular_window_deg) and sigma[0] >= rt.recovery_linear_window
+    # the nodes after it were matched against the two submaps the fresh start finished (the newest)
+    old = set(gs.nodes[prev]["submaps"])
+    assert max(old) == max(gs.matchers)
+    assert any(r["submap"] in old and r["to_scan"] > j for r in gs.records)
+    res = slam.finish()  # the graph solves: every node hangs on the rest
+    assert np.all(np.isfinite(res.poses))

@@ -61,6 +61,10 @@ class GlobalSlam:
         self._tracks_at = None  # ``_submap_tracks``'s cache and when it was made
         self._tracks = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros((0, 2)))
         self._own: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # ``_submap_nodes``'s cache
+        # local SLAM's last fresh start (``ActiveSubmaps.insert``'s restart): its first submap, and
+        # per submap the first of the stretch it belongs to
+        self._segment_start = 0
+        self._segment_of: dict[int, int] = {}
         self.wide_searches = 0
         self.wide_accepted = 0
         self.sampled: list[int] = []  # nodes matched against finished submaps (and new submaps against them)
@@ -99,10 +103,12 @@ class GlobalSlam:
         return self.global_node(self.submap_anchor[k])
 
     # ---- input from local SLAM
-    def add_node(self, scan, local_pose, hits, covariance, inserted_into, doubt=(0.0, 0.0)):
+    def add_node(self, scan, local_pose, hits, covariance, inserted_into, doubt=(0.0, 0.0), fresh_start=False):
         """``covariance``: the local match's 3×3 covariance (map axes), or the match itself (anything with
         a ``covariance``, e.g. ``MatchResult``: computed here), or None for a scan never matched.
-        ``doubt``: what local SLAM could not vouch for since the last node (``MatchingResult.doubt``)."""
+        ``doubt``: what local SLAM could not vouch for since the last node (``MatchingResult.doubt``).
+        ``fresh_start``: local SLAM lost track and started new submaps with this node
+        (``MatchingResult.fresh_start``)."""
         if covariance is not None and not isinstance(covariance, np.ndarray):
             covariance = covariance.covariance
         j = scan.index
@@ -121,9 +127,21 @@ class GlobalSlam:
             covariance = self.unmatched_cov
         # the matcher's covariance is along the local map's x/y axes; the between-factor's noise
         # is in the node's own frame (gtsam: error = Logmap(measured⁻¹ · anchor⁻¹ · node))
-        cov = node_frame_covariance(_floored(covariance, self.lc.min_local_sigma_translation,
-                                             math.radians(self.lc.min_local_sigma_rotation_deg)), local_pose[2])
+        floored = _floored(covariance, self.lc.min_local_sigma_translation,
+                           math.radians(self.lc.min_local_sigma_rotation_deg))
+        cov = node_frame_covariance(floored, local_pose[2])
+        submaps = [k for k, _ in inserted_into]
+        self.nodes[j].update(cov_map=floored, submaps=submaps)
+        if fresh_start and submaps:
+            self._segment_start = min(submaps)
+        if prev is not None and submaps and not set(submaps) & set(prev["submaps"]):
+            # no submap holds both nodes (local SLAM started afresh): the step between them is the only
+            # link, as loose as local SLAM's doubt about it
+            self.graph.add_intra(self.node_order[-2], j, between(prev["local"], local_pose),
+                                 node_frame_covariance(floored + prev["cov_map"], local_pose[2])
+                                 + self._drift_covariance(step) + np.diag([doubt[0] ** 2, doubt[0] ** 2, doubt[1] ** 2]))
         for k, sub_local in inserted_into:
+            self._segment_of.setdefault(k, self._segment_start)
             if k not in self.submap_local:
                 self.submap_local[k] = np.asarray(sub_local, float)
                 self.submap_anchor[k] = j
@@ -210,15 +228,23 @@ class GlobalSlam:
         newest = max(self.matchers, default=-1)
         ks, centres = self._submap_centres()
         d = np.hypot(node_g[0] - centres[:, 0], node_g[1] - centres[:, 1])
-        near = (ks <= newest - lc.exclude_recent_submaps) & (d < lc.max_constraint_distance)
+        near = self._searchable(ks, newest, self._segment_start) & (d < lc.max_constraint_distance)
         chosen = [k for _, k in sorted(zip(d[near].tolist(), ks[near].tolist()))[:n]]
         if not chosen:
             tk, starts, track = self._submap_tracks()
             if len(tk):
                 dn = np.minimum.reduceat(np.hypot(track[:, 0] - node_g[0], track[:, 1] - node_g[1]), starts)
-                ok = (tk <= newest - lc.exclude_recent_submaps) & (dn < lc.max_constraint_distance)
+                ok = self._searchable(tk, newest, self._segment_start) & (dn < lc.max_constraint_distance)
                 chosen = [k for _, k in sorted(zip(dn[ok].tolist(), tk[ok].tolist()))[:n]]
         return chosen
+
+    def _searchable(self, ks: np.ndarray, newest: int, segment_start: int) -> np.ndarray:
+        """Which finished submaps ``ks`` a node of the stretch of local SLAM that began with submap
+        ``segment_start`` is matched against, ``newest`` being the newest finished one. The newest
+        ``exclude_recent_submaps`` share scans with the active submaps and are left to local SLAM,
+        except those finished before local SLAM's last fresh start: it matches nothing against
+        them any more, so only loop closure can tie the new stretch to them."""
+        return (ks <= newest - self.lc.exclude_recent_submaps) | (ks < segment_start)
 
     def _submap_tracks(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(ids, start offsets, (M, 2) global positions) of the nodes of every finished submap that
@@ -356,7 +382,8 @@ class GlobalSlam:
         lc = self.lc
         s = submap.index
         own = self._submap_nodes(s)[0].tolist()
-        targets = [k for k in self.matchers if k < s - lc.exclude_recent_submaps]
+        ks = np.array(list(self.matchers), dtype=np.int64)
+        targets = ks[self._searchable(ks, s - 1, self._segment_of.get(s, 0))].tolist()
         if not own or not targets:
             return
         windows = {}

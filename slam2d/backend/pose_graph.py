@@ -4,7 +4,8 @@ Variables are node poses in the map frame; a submap's pose is the pose of its fi
 (the node whose local pose started it), so a submap needs no variable of its own. Factors:
 a prior on the first node; node-in-submap constraints from local SLAM between a submap's
 first node and each node inserted into it (their noise from the real-time matcher's
-covariance, in the node's frame); loop-closure constraints with their own covariance from the match,
+covariance, in the node's frame); where local SLAM started afresh, so that no submap holds two
+consecutive nodes, the step between them (``GlobalSlam.add_node``); loop-closure constraints with their own covariance from the match,
 under a Huber robust noise model. ``optimize`` solves from the current estimate, either by batch
 Levenberg-Marquardt over the whole graph or, with ``incremental``, by iSAM2 (Kaess et al. 2012),
 which takes only the factors and nodes added since its last update, re-eliminates the part of

@@ -7,7 +7,11 @@ a sparse log (scans a metre apart) would grow submaps five times the size of a d
 with five times the drift inside and the memory. So a submap is also full once the robot
 travelled ``max_travel`` metres since it started (path length of the inserted poses). Local matching uses the older active submap, which
 always holds more data. A submap's grid is axis-aligned in the local frame; its
-``local_pose`` is the tracking pose of the scan that started it.
+``local_pose`` is the tracking pose of the scan that started it. Where local SLAM lost track
+(a scan forced in from the edge of every window), the active submaps are finished and the scan
+starts a new one (``ActiveSubmaps.insert``'s ``restart``), as Cartographer starts a new
+trajectory: the old submaps keep what was mapped before, consistent, and the pose graph can
+turn the new ones against them.
 """
 from __future__ import annotations
 
@@ -65,14 +69,25 @@ class ActiveSubmaps:
     def _full(self, s: Submap) -> bool:
         return s.num_range_data >= self.num_range_data or s.travel >= self.max_travel
 
-    def insert(self, local_pose, origin, hits, misses, node_index: int) -> list[Submap]:
-        """Insert range data (local frame) into the active submaps; returns submaps finished by it."""
+    def insert(self, local_pose, origin, hits, misses, node_index: int, restart: bool = False) -> list[Submap]:
+        """Insert range data (local frame) into the active submaps; returns submaps finished by it.
+
+        ``restart``: local SLAM lost track before this scan (its pose is a guess). The active
+        submaps are finished first, so what was mapped before is not overlaid by what is mapped
+        from the guess on, and the scan starts a new submap; the pose graph can then turn the new
+        submaps against the old ones where loops show how."""
+        finished = []
+        if restart:
+            while self.submaps:
+                old = self.submaps.pop(0)
+                old.finish()
+                finished.append(old)
+            self._last_pose = None
         if not self.submaps or self._full(self.submaps[-1]):
             self._add(local_pose)
         step = 0.0 if self._last_pose is None else math.hypot(local_pose[0] - self._last_pose[0],
                                                                local_pose[1] - self._last_pose[1])
         self._last_pose = (float(local_pose[0]), float(local_pose[1]))
-        finished = []
         self.last_inserted_into = [(s.index, s.local_pose) for s in self.submaps]
         insert_scan([s.grid for s in self.submaps], origin, hits, misses)
         for s in self.submaps:
