@@ -19,7 +19,10 @@ Two kinds of evidence:
   seen at grazing angles by sparse beams (1° at 20 m is 35 cm), which made correct maps of
   spatially sparse logs look broken.
 * **What local and global SLAM said along the way**: matches that could not be trusted,
-  recovery searches, loop constraints the optimizer had to remove.
+  recovery searches, loop constraints the optimizer had to remove, and places where local SLAM
+  lost track and started afresh that no loop in the final graph spans (``fresh_starts_untied``:
+  what was mapped after such a place hangs on what was mapped before by a step as loose as the
+  recovery window, so a WARN, even where no revisit shows it).
 
 ``status`` is OK, WARN or BROKEN; ``reasons`` says why when it is not OK, and
 ``revisits_disagreeing_at`` says where: the longest stretches of the trajectory whose scans
@@ -188,6 +191,13 @@ def assess(cfg, nodes, poses, local: dict | None = None, loops: dict | None = No
         if acc and loops.get("in_final_graph", 0) == 0:
             level = max(level, 1)
             reasons.append("every accepted loop constraint was removed by the optimizer")
+        untied = loops.get("fresh_starts_untied") or []
+        if untied:
+            out["fresh_starts_untied"] = untied
+            level = max(level, 1)
+            more = f" (and at {len(untied) - 1} more)" if len(untied) > 1 else ""
+            reasons.append(f"local SLAM lost track at scan {untied[0]}{more} and no loop closure tied what it mapped after "
+                           f"to what it mapped before: the two may be misaligned there")
     out["status"] = ("OK", "WARN", "BROKEN")[level]
     out["reasons"] = reasons
     return out

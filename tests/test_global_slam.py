@@ -381,3 +381,39 @@ def test_a_fresh_start_of_local_slam_hangs_on_a_loose_step_and_is_searched_again
     assert any(r["submap"] in old and r["to_scan"] > j for r in gs.records)
     res = slam.finish()  # the graph solves: every node hangs on the rest
     assert np.all(np.isfinite(res.poses))
+
+
+def test_a_fresh_start_no_loop_ties_back_is_reported_by_the_health_check():
+    """Local SLAM loses track at a 90° jump (``test_frontend._teleported``) and no loop closure ties the
+    stretch after it to the one before within the run: the map is broken, its parts 90° apart, but
+    no revisit shows it, so only the untied fresh start can say so. The same scans without the jump
+    have no fresh start and pass."""
+    from conftest import BUNDLED
+    from slam2d.io.source import open_source
+    from test_frontend import _teleported
+
+    plain = list(open_source(BUNDLED))[:400]
+    jumped = _teleported(plain, 170, 25)
+    res = Slam().run(jumped)
+    lc, health = res.summary["loop_closure"], res.summary["health"]
+    assert res.summary["ate_vs_ground_truth"]["trans_m"]["rmse"] > 1.0  # really broken
+    (h,) = lc["fresh_starts"]
+    assert lc["fresh_starts_untied"] == [h] and health["fresh_starts_untied"] == [h]
+    assert health["status"] != "OK" and any(f"lost track at scan {h}" in r for r in health["reasons"])
+    ok = Slam().run(plain).summary
+    assert ok["loop_closure"]["fresh_starts"] == [] and ok["health"]["status"] == "OK"
+
+
+def test_a_loop_ties_a_fresh_start_when_it_spans_it():
+    """``untied_fresh_starts``: a fresh start is tied by a loop in the graph whose two nodes lie on
+    either side of it (the node itself counts as after), whichever end is the anchor."""
+    from types import SimpleNamespace
+
+    gs = GlobalSlam(SlamConfig())
+    gs.fresh_starts = [100, 200, 300]
+    gs.graph = SimpleNamespace(loops=[SimpleNamespace(anchor=250, node=150),   # spans 200
+                                      SimpleNamespace(anchor=90, node=100),    # ends at 100: spans it
+                                      SimpleNamespace(anchor=310, node=390)])  # after 300 only
+    assert gs.untied_fresh_starts() == [300]
+    gs.graph = SimpleNamespace(loops=[])
+    assert gs.untied_fresh_starts() == [100, 200, 300]

@@ -65,6 +65,7 @@ class GlobalSlam:
         # per submap the first of the stretch it belongs to
         self._segment_start = 0
         self._segment_of: dict[int, int] = {}
+        self.fresh_starts: list[int] = []  # the nodes local SLAM started afresh with
         self.wide_searches = 0
         self.wide_accepted = 0
         self.sampled: list[int] = []  # nodes matched against finished submaps (and new submaps against them)
@@ -134,6 +135,7 @@ class GlobalSlam:
         self.nodes[j].update(cov_map=floored, submaps=submaps)
         if fresh_start and submaps:
             self._segment_start = min(submaps)
+            self.fresh_starts.append(j)
         if prev is not None and submaps and not set(submaps) & set(prev["submaps"]):
             # no submap holds both nodes (local SLAM started afresh): the step between them is the only
             # link, as loose as local SLAM's doubt about it
@@ -556,7 +558,16 @@ class GlobalSlam:
             "optimizations": self.optimizations, "optimize_total_s": round(self.optimize_seconds, 3),
             "final_error": self.graph.last_error[1], "submaps": len(self.submap_local), "nodes": len(self.node_order),
             "solver_process_peak_rss_mb": getattr(self.graph, "peak_rss_mb", None),
+            "fresh_starts": list(self.fresh_starts), "fresh_starts_untied": self.untied_fresh_starts(),
         }}
+
+    def untied_fresh_starts(self) -> list[int]:
+        """The nodes where local SLAM started afresh (``add_node``) that no loop in the graph spans: what
+        was mapped after such a node hangs on what was mapped before only by the loose step between
+        them, so the two may be misaligned by as much as local SLAM's doubt."""
+        ends = np.array([(min(f.anchor, f.node), max(f.anchor, f.node)) for f in self.graph.loops],
+                        dtype=np.int64).reshape(-1, 2)
+        return [int(h) for h in self.fresh_starts if not np.any((ends[:, 0] < h) & (ends[:, 1] >= h))]
 
 
 def min_score_for(lc, self_score: float) -> float:
