@@ -66,6 +66,7 @@ class GlobalSlam:
         self._segment_start = 0
         self._segment_of: dict[int, int] = {}
         self.fresh_starts: list[int] = []  # the nodes local SLAM started afresh with
+        self._last_step = None  # the newest node's (submaps, floored map-axes covariance), for the next step
         self.wide_searches = 0
         self.wide_accepted = 0
         self.sampled: list[int] = []  # nodes matched against finished submaps (and new submaps against them)
@@ -131,17 +132,17 @@ class GlobalSlam:
         floored = _floored(covariance, self.lc.min_local_sigma_translation,
                            math.radians(self.lc.min_local_sigma_rotation_deg))
         cov = node_frame_covariance(floored, local_pose[2])
-        submaps = [k for k, _ in inserted_into]
-        self.nodes[j].update(cov_map=floored, submaps=submaps)
+        submaps = {k for k, _ in inserted_into}
         if fresh_start and submaps:
             self._segment_start = min(submaps)
             self.fresh_starts.append(j)
-        if prev is not None and submaps and not set(submaps) & set(prev["submaps"]):
+        if prev is not None and submaps and not submaps & self._last_step[0]:
             # no submap holds both nodes (local SLAM started afresh): the step between them is the only
             # link, as loose as local SLAM's doubt about it
             self.graph.add_intra(self.node_order[-2], j, between(prev["local"], local_pose),
-                                 node_frame_covariance(floored + prev["cov_map"], local_pose[2])
+                                 node_frame_covariance(floored + self._last_step[1], local_pose[2])
                                  + self._drift_covariance(step) + np.diag([doubt[0] ** 2, doubt[0] ** 2, doubt[1] ** 2]))
+        self._last_step = (submaps, floored)
         for k, sub_local in inserted_into:
             self._segment_of.setdefault(k, self._segment_start)
             if k not in self.submap_local:
