@@ -17,7 +17,10 @@ Two kinds of evidence:
   passes alone (``free_space_checks``): neighbours from one pass drifted together and agree with
   each other, so a loop that was never closed shows only there. Ray tests, not a rasterised vote map: a map of 5 cm cells erases thin walls
   seen at grazing angles by sparse beams (1° at 20 m is 35 cm), which made correct maps of
-  spatially sparse logs look broken.
+  spatially sparse logs look broken. A scan's beams here are its returns and its returns beyond
+  the usable range, not its no-returns: a sensor also drops returns off glass, black or shiny
+  surfaces and at grazing angles, and a log writes those as no-returns, so a no-return ray
+  through a wall another scan saw is no sign of a wrong pose.
 * **What local and global SLAM said along the way**: matches that could not be trusted,
   recovery searches, loop constraints the optimizer had to remove, and places where local SLAM
   lost track and started afresh that no loop in the final graph spans (``fresh_starts_untied``:
@@ -72,10 +75,12 @@ def free_space_checks(nodes, poses, resolution: float) -> tuple[np.ndarray, np.n
     if len(nodes) < 2:
         return out, revisit
     # every node's sensor, hits and beams in the map frame, from flat float32 copies of the nodes' rays
+    # a node's free space: its returns' rays, and those of returns beyond the usable range (its first
+    # ``far_misses`` misses), not its no-return rays (module docstring)
     hit_start = np.r_[0, np.cumsum([len(n.hits) for n in nodes])].astype(np.int64)
-    miss_start = np.r_[0, np.cumsum([len(n.misses) for n in nodes])].astype(np.int64)
-    flat = [np.concatenate([np.asarray(getattr(n, k), dtype=np.float32).reshape(-1, 2) for n in nodes])
-            for k in ("hits", "misses")]
+    miss_start = np.r_[0, np.cumsum([n.far_misses for n in nodes])].astype(np.int64)
+    flat = [np.concatenate([np.asarray(n.hits, dtype=np.float32).reshape(-1, 2) for n in nodes]),
+            np.concatenate([np.asarray(n.misses[:n.far_misses], dtype=np.float32).reshape(-1, 2) for n in nodes])]
     q = np.array([poses[n.scan_index] for n in nodes], dtype=np.float64).reshape(-1, 3)
     sensors = np.array([n.origin for n in nodes], dtype=np.float64).reshape(-1, 2)
     origins, hits, bearings, ranges, beam_start, steps = _kernels.world_beams(q, sensors, flat[0], hit_start, flat[1],

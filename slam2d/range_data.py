@@ -24,11 +24,12 @@ class RangeData:
     origin: np.ndarray  # (2,) laser position in the tracking frame
     hits: np.ndarray    # (N, 2) tracking frame
     misses: np.ndarray  # (M, 2) tracking frame, ends of free-space rays
+    far: int = 0        # the first ``far`` misses are returns beyond max_range (cut there), the rest no-returns
 
     def transformed(self, pose) -> "RangeData":
         n = len(self.hits)
         pts = transform_points(pose, np.concatenate([self.origin[None, :], self.hits, self.misses]))
-        return RangeData(pts[0], pts[1:n + 1], pts[n + 1:])
+        return RangeData(pts[0], pts[1:n + 1], pts[n + 1:], self.far)
 
 
 def range_data(scan: Scan, cfg: RangeFilterConfig) -> RangeData:
@@ -40,11 +41,14 @@ def range_data(scan: Scan, cfg: RangeFilterConfig) -> RangeData:
     # a no-return says nothing lies within the sensor's range: beyond it the space is unknown
     sensor = scan.range_max if scan.range_max > 0 else math.inf
     miss_len = min(cfg.missing_data_ray_length, cfg.max_range, sensor) if cfg.missing_data_ray_length > 0 else 0.0
+    min_range = float(max(cfg.min_range, scan.range_min))
     nh, nm = _kernels.scan_to_range_data(scan.ranges, scan.valid, no_ret, float(scan.angle_min),
-                                         float(scan.angle_increment), float(max(cfg.min_range, scan.range_min)),
-                                         float(cfg.max_range), float(miss_len), float(off[0]), float(off[1]),
-                                         float(off[2]), hits, misses)
-    return RangeData(np.array([float(off[0]), float(off[1])]), hits[:nh], misses[:nm])
+                                         float(scan.angle_increment), min_range, float(cfg.max_range), float(miss_len),
+                                         float(off[0]), float(off[1]), float(off[2]), hits, misses)
+    # the kernel writes the misses of returns beyond max_range first, then the no-returns'
+    r = np.asarray(scan.ranges, dtype=np.float64)
+    far = int(np.count_nonzero(scan.valid & (r >= min_range) & (r > float(cfg.max_range))))
+    return RangeData(np.array([float(off[0]), float(off[1])]), hits[:nh], misses[:nm], far)
 
 
 def voxel_filter(points: np.ndarray, size: float) -> np.ndarray:

@@ -209,7 +209,7 @@ class Slam:
         if res.inserted:
             rd = res.range_data
             self.nodes.append(Node(i, scan.timestamp, np.asarray(res.local_pose, dtype=float), rd.hits.astype(np.float32),
-                                   rd.misses.astype(np.float32), rd.origin.astype(np.float32)))
+                                   rd.misses.astype(np.float32), rd.origin.astype(np.float32), rd.far))
         self.observer.on_scan(scan, res)
         local = self._local[-1]
         glob = local.copy() if gs is None else compose(gs.correction, local)

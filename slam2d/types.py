@@ -116,6 +116,7 @@ class Node:
     hits: np.ndarray
     misses: np.ndarray
     origin: np.ndarray
+    far_misses: int = 0  # the first ``far_misses`` misses are returns beyond max_range, the rest no-returns
 
 
 @dataclass

@@ -153,6 +153,32 @@ def test_free_space_check_ignores_a_person_seen_by_one_scan_and_flags_a_wrong_po
     assert (v > MAX_VIOLATION).all(), v
 
 
+def test_no_return_rays_are_no_free_space_evidence_but_returns_beyond_range_are():
+    """A sensor drops returns (glass, black or shiny surfaces, grazing angles); CARMEN logs write a
+    dropped beam as a no-return, which local SLAM inserts as a short free-space ray. Where such
+    rays cross a wall another scan saw, the poses are not wrong: two scans of a room at their
+    true poses, each with a quarter of its beams dropped (a dark wall) and a few more at random,
+    agree. The same rays as returns beyond the usable range (``far_misses``) are real free space,
+    and the walls inside them make the pair disagree."""
+    from slam2d.health import MAX_VIOLATION, free_space_violation
+
+    rng = np.random.default_rng(2)
+    poses = np.array([[-1.0, 0.0, 0.0], [1.0, 0.5, 0.4]])
+    nodes = []
+    for k, (pose, sector) in enumerate(zip(poses, ((0, 90), (180, 270)))):
+        n = _box_scan(pose)
+        bearing = np.degrees(np.arctan2(n.hits[:, 1], n.hits[:, 0])) % 360
+        dropped = ((bearing >= sector[0]) & (bearing < sector[1])) | (rng.random(len(n.hits)) < 0.1)
+        rays = n.hits[dropped] / np.linalg.norm(n.hits[dropped], axis=1, keepdims=True) * 5.0  # missing_data_ray_length
+        assert (5.0 > np.linalg.norm(n.hits[dropped], axis=1)).mean() > 0.5  # most of them cross a wall
+        n.hits, n.misses, n.scan_index = n.hits[~dropped], rays.astype(np.float32), k
+        nodes.append(n)
+    assert (free_space_violation(nodes, poses, 0.05) <= MAX_VIOLATION).all()
+    for n in nodes:
+        n.far_misses = len(n.misses)
+    assert (free_space_violation(nodes, poses, 0.05) > MAX_VIOLATION).all()
+
+
 def test_free_space_kernel_matches_the_numpy_oracle():
     from slam2d import _kernels
 

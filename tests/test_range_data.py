@@ -21,7 +21,7 @@ def range_data_oracle(scan: Scan, cfg: RangeFilterConfig):
         length = min(cfg.missing_data_ray_length, cfg.max_range)
         parts.append(np.stack([length * c[scan.no_return], length * s[scan.no_return]], axis=1))
     off = scan.laser_offset
-    return transform_points(off, hits), transform_points(off, np.vstack(parts))
+    return transform_points(off, hits), transform_points(off, np.vstack(parts)), int(far.sum())
 
 
 def voxel_oracle(points, size):
@@ -50,11 +50,16 @@ def test_range_data_matches_oracle(seed, miss):
     scan = random_scan(rng)
     cfg = RangeFilterConfig(min_range=0.5, max_range=30.0, missing_data_ray_length=miss)
     rd = range_data(scan, cfg)
-    hits, misses = range_data_oracle(scan, cfg)
+    hits, misses, far = range_data_oracle(scan, cfg)
     assert len(rd.hits) > 100 and len(rd.misses) > (10 if miss else 0)
     np.testing.assert_allclose(rd.hits, hits, atol=1e-12)
     np.testing.assert_allclose(rd.misses, misses, atol=1e-12)
     np.testing.assert_allclose(rd.origin, scan.laser_offset[:2])
+    # the misses of returns beyond max_range come first, and ``far`` says how many (the health
+    # report's free space is theirs and the returns', not the no-returns')
+    assert rd.far == far and 10 < far <= len(rd.misses) - (10 if miss else 0)
+    moved = rd.transformed(np.array([1.0, 2.0, 0.3]))
+    assert moved.far == far
 
 
 @pytest.mark.parametrize("size", [0.025, 0.1, 1.0])
