@@ -133,6 +133,13 @@ def test_benchmark_runs_every_suite_on_tiny_logs(tmp_path):
     assert b["sparse"][0]["dataset"] == "corner" and sp["ate"]["matching"] == "scan_order" and sp["ate"]["pairs"] == 100
     assert set(sp["loops_vs_ground_truth"]) >= {"final_graph", "accepted", "recall", "tolerance"}
     assert "| corner | slam2d" in md and "≤ 0.15" in md
+    # the same scans with the odometry of two more seeds (--sparse-spread, default 8,9): slam2d alone
+    by_seed = sp["ate_rmse_by_seed"]
+    assert list(by_seed) == ["7", "8", "9"] and by_seed["7"] == sp["ate"]["trans_m"]["rmse"]
+    assert all((out / "runs" / f"sparse-corner-seed{s}" / "trajectory.txt").exists() for s in (8, 9))
+    assert not (out / "runs" / "sparse-corner-seed8_karto.txt").exists()
+    v = sorted(by_seed.values())
+    assert f"{v[1]:.3f} ({v[0]:.3f}–{v[2]:.3f}) over 3" in md
     for row in b["degraded"] + b["clinic"]:
         assert row["slam2d"]["peak_rss_mb"] > 0 and row["slam2d"]["wall_s"] > 0
     try:

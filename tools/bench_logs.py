@@ -61,11 +61,12 @@ def corrected_logs(datasets: Path) -> list[tuple[str, Path]]:
     return sorted((p.parent.name, p) for p in datasets.rglob("*") if p.is_file() and pat.search(p.name))
 
 
-def sparse_log(args, name: str, corrected: Path) -> tuple[Path, Path]:
-    """(NAME.clf, NAME.gt.txt) that ``make_sparse.py OUTDIR LOG --seed 7`` writes, cached."""
+def sparse_log(args, name: str, corrected: Path, seed: int | None = None) -> tuple[Path, Path]:
+    """(NAME.clf, NAME.gt.txt) that ``make_sparse.py OUTDIR LOG --seed SEED`` writes (default
+    ``args.sparse_seed``, 7), cached."""
     tool = args.shared / "tools" / "make_sparse.py"
-    d = cached(args.cache, tool, args.sparse_seed, name, corrected,
-               lambda tmp: _tool([tool, tmp, corrected, "--seed", args.sparse_seed]))
+    seed = args.sparse_seed if seed is None else seed
+    d = cached(args.cache, tool, seed, name, corrected, lambda tmp: _tool([tool, tmp, corrected, "--seed", seed]))
     clf, gt = sorted(d.glob("*.clf")), sorted(d.glob("*.gt.txt"))
     if len(clf) != 1 or len(gt) != 1:
         raise SystemExit(f"benchmark: {d}: expected one .clf and one .gt.txt from make_sparse.py")
