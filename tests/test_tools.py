@@ -140,6 +140,10 @@ def test_benchmark_runs_every_suite_on_tiny_logs(tmp_path):
     assert not (out / "runs" / "sparse-corner-seed8_karto.txt").exists()
     v = sorted(by_seed.values())
     assert f"{v[1]:.3f} ({v[0]:.3f}–{v[2]:.3f}) over 3" in md
+    health = sp["health_by_seed"]
+    assert list(health) == ["7", "8", "9"] and set(health.values()) <= {"OK", "WARN", "BROKEN"}
+    for seed, status in health.items():  # a seed whose run is not OK is named in the table
+        assert (f"seed {seed}: {by_seed[seed]:.3f}, {status}" in md) == (status != "OK")
     for row in b["degraded"] + b["clinic"]:
         assert row["slam2d"]["peak_rss_mb"] > 0 and row["slam2d"]["wall_s"] > 0
     try:

@@ -98,7 +98,7 @@ def degraded_table(rows, kind: str = "degraded") -> str:
 
 def sparse_table(rows) -> str:
     target = TARGETS["sparse_ate_rmse_m"]
-    lines = [f"| dataset (sparse) | system | scans | wall s | peak RSS MB | ATE RMSE m | target ≤ {target} m | met | ATE RMSE over the seeds: median (min–max) m | loops accepted / final / searched | loop precision vs ground truth, final graph (all accepted) | its misses, by the raw scans: loop right / truth right / undecided | recall (revisit episodes closed) | health |",
+    lines = [f"| dataset (sparse) | system | scans | wall s | peak RSS MB | ATE RMSE m | target ≤ {target} m | met | ATE RMSE over the seeds: median (min–max) m; seeds whose health is not OK | loops accepted / final / searched | loop precision vs ground truth, final graph (all accepted) | its misses, by the raw scans: loop right / truth right / undecided | recall (revisit episodes closed) | health |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
         n, s = row["dataset"], row["slam2d"]
@@ -113,7 +113,7 @@ def sparse_table(rows) -> str:
             rc = g["recall"]
             rec = f"{rc['closed']} of {rc['episodes']}"
         lines.append(f"| {n} | slam2d ({s['mode']}) | {s['scans']} | {s['wall_s']:.1f} | {s['peak_rss_mb']:.0f} | "
-                     f"{rmse:.3f} | ≤ {target} | {_met(rmse <= target)} | {_spread(s.get('ate_rmse_by_seed'))} | "
+                     f"{rmse:.3f} | ≤ {target} | {_met(rmse <= target)} | {_spread(s.get('ate_rmse_by_seed'), s.get('health_by_seed'))} | "
                      f"{loops_txt(s)} | {prec} | {by_scans} | {rec} | {health_txt(s)} |")
         k = row.get("karto", {})
         if "ate" in k:
@@ -123,12 +123,15 @@ def sparse_table(rows) -> str:
     return "\n".join(lines)
 
 
-def _spread(by_seed: dict | None) -> str:
-    """'median (min–max) over N seeds' of the ATE RMSE by make_sparse.py seed."""
+def _spread(by_seed: dict | None, health: dict | None = None) -> str:
+    """'median (min–max) over N seeds' of the ATE RMSE by make_sparse.py seed, and each seed whose
+    run's health report is not OK with its ATE and status."""
     if not by_seed or len(by_seed) < 2:
         return "—"
     v = np.array(list(by_seed.values()), dtype=float)
-    return f"{np.median(v):.3f} ({v.min():.3f}–{v.max():.3f}) over {len(v)}"
+    text = f"{np.median(v):.3f} ({v.min():.3f}–{v.max():.3f}) over {len(v)}"
+    flagged = [f"seed {k}: {by_seed[k]:.3f}, {st}" for k, st in (health or {}).items() if st not in (None, "OK")]
+    return text + (f"; {'; '.join(flagged)}" if flagged else "")
 
 
 def simulated_table(rows) -> str:

@@ -230,14 +230,17 @@ def bench_sparse(name: str, log: Path, gt: Path, args, outdir: Path, corrected: 
     if "trajectory" in row.get("karto", {}):
         row["karto"]["ate"] = ate_vs_ground_truth(Path(row["karto"]["trajectory"]), gt)
     by_seed = {str(args.sparse_seed): row["slam2d"]["ate"]["trans_m"]["rmse"]}
+    health = {str(args.sparse_seed): (row["slam2d"].get("health") or {}).get("status")}
     for seed in (args.sparse_spread if corrected is not None else []):
         if seed == args.sparse_seed:
             continue
         log_s, gt_s = sparse_log(args, name, corrected, seed=seed)
         label = f"sparse-{name}-seed{seed}"
-        run_log(label, log_s, args, outdir, peer=False, repeat=1)
+        r = run_log(label, log_s, args, outdir, peer=False, repeat=1)
         by_seed[str(seed)] = ate_vs_ground_truth(outdir / label / "trajectory.txt", gt_s)["trans_m"]["rmse"]
+        health[str(seed)] = (r["slam2d"].get("health") or {}).get("status")
     row["slam2d"]["ate_rmse_by_seed"] = by_seed
+    row["slam2d"]["health_by_seed"] = health  # does the run's own report flag the seeds that failed?
     return row
 
 
