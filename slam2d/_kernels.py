@@ -36,8 +36,8 @@ def scan_to_range_data(ranges, valid, no_return, angle_min, angle_increment, min
     Valid readings within [min_range, max_range] are hits; valid readings beyond max_range
     become misses cut at max_range; no-return beams become misses of ``miss_length`` (none
     when it is 0). Writes into ``hits`` / ``misses`` (capacity = beam count each) and
-    returns (number of hits, number of misses); misses come far ones first, then no-returns,
-    each in beam order.
+    returns (number of hits, number of misses, number of far misses); misses come far ones
+    first, then no-returns, each in beam order.
     """
     n = ranges.shape[0]
     c0 = math.cos(oth)
@@ -54,12 +54,13 @@ def scan_to_range_data(ranges, valid, no_return, angle_min, angle_increment, min
         if valid[i] and r >= min_range and r > max_range:
             _put(misses, nm, max_range, angle_min + angle_increment * i, ox, oy, c0, s0)
             nm += 1
+    far = nm
     if miss_length > 0.0:
         for i in range(n):
             if no_return[i]:
                 _put(misses, nm, miss_length, angle_min + angle_increment * i, ox, oy, c0, s0)
                 nm += 1
-    return nh, nm
+    return nh, nm, far
 
 
 @njit(cache=True)

@@ -42,13 +42,10 @@ def range_data(scan: Scan, cfg: RangeFilterConfig) -> RangeData:
     sensor = scan.range_max if scan.range_max > 0 else math.inf
     miss_len = min(cfg.missing_data_ray_length, cfg.max_range, sensor) if cfg.missing_data_ray_length > 0 else 0.0
     min_range = float(max(cfg.min_range, scan.range_min))
-    nh, nm = _kernels.scan_to_range_data(scan.ranges, scan.valid, no_ret, float(scan.angle_min),
-                                         float(scan.angle_increment), min_range, float(cfg.max_range), float(miss_len),
-                                         float(off[0]), float(off[1]), float(off[2]), hits, misses)
-    # the kernel writes the misses of returns beyond max_range first, then the no-returns'
-    r = np.asarray(scan.ranges, dtype=np.float64)
-    far = int(np.count_nonzero(scan.valid & (r >= min_range) & (r > float(cfg.max_range))))
-    return RangeData(np.array([float(off[0]), float(off[1])]), hits[:nh], misses[:nm], far)
+    nh, nm, far = _kernels.scan_to_range_data(scan.ranges, scan.valid, no_ret, float(scan.angle_min),
+                                              float(scan.angle_increment), min_range, float(cfg.max_range),
+                                              float(miss_len), float(off[0]), float(off[1]), float(off[2]), hits, misses)
+    return RangeData(np.array([float(off[0]), float(off[1])]), hits[:nh], misses[:nm], int(far))
 
 
 def voxel_filter(points: np.ndarray, size: float) -> np.ndarray:
