@@ -2,6 +2,7 @@
 import math
 
 import numpy as np
+import pytest
 
 from slam2d.backend.wide_search import (COARSE_FACTOR, NEUTRAL, coarse_grid, coarse_match,
                                         frame_offset, submap_content)
@@ -40,16 +41,20 @@ def test_coarse_grid_is_the_block_maximum_with_unobserved_cells_neutral():
     assert np.allclose(c.origin, g.origin) and math.isclose(c.resolution, 0.05 * f)
 
 
-def test_coarse_match_finds_a_submap_moved_far_beyond_the_regular_window():
+@pytest.mark.parametrize("budget", [(0, 0.0), (100, 0.9)], ids=["every-2x2-coarse-cells", "loop-point-budget"])
+def test_coarse_match_finds_a_submap_moved_far_beyond_the_regular_window(budget):
     """The content of one submap, moved by 6 m and 70° (drift), is put back onto an older submap of
-    the same place, also when the true pose lies near the older submap's border."""
+    the same place, also when the true pose lies near the older submap's border; also with the
+    content thinned to the loop-closure points' budget (the default config's)."""
     segs = floor_plan()
     older = _grid(segs, [np.array([x, 6.0, 0.0]) for x in np.linspace(4.0, 26.0, 12)])
     target = coarse_grid(older)
     for path in ([np.array([x, 6.0, 0.3]) for x in np.linspace(5.0, 15.0, 6)],      # the middle
                  [np.array([x, 1.25, 0.0]) for x in np.linspace(20.0, 28.5, 5)]):    # the bottom-right corner
         newer = _grid(segs, path)
-        content = submap_content(newer)
+        content = submap_content(newer, *budget)
+        if budget[0]:  # thinned: fewer points, but never below the budget
+            assert budget[0] <= len(content) < len(submap_content(newer))
         centre = np.r_[content.mean(axis=0), 0.0]
         # where local SLAM put the newer submap: turned by 70° about its centre and moved 6 m
         drift = compose(compose(centre, np.array([4.0, -4.5, math.radians(70.0)])), inverse(centre))

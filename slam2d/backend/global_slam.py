@@ -398,7 +398,7 @@ class GlobalSlam:
                 windows[k] = (lin, ang)  # beyond the regular search's reach
         if not windows:
             return
-        content = submap_content(submap.grid)
+        content = submap_content(submap.grid, lc.adaptive_voxel_min_points, lc.adaptive_voxel_max_length)
         if len(content) < 3:
             return
         centre = np.r_[content.mean(axis=0), 0.0]

@@ -29,7 +29,7 @@ import numpy as np
 
 from slam2d.geometry import between, compose
 from slam2d.matching.search import MatchGrid, PrecomputationStack, SearchParameters, branch_and_bound
-from slam2d.range_data import voxel_filter
+from slam2d.range_data import adaptive_voxel_filter, voxel_filter
 
 #: cells of the regular grid pooled into one coarse cell, per side
 COARSE_FACTOR = 4
@@ -49,12 +49,16 @@ def coarse_grid(grid) -> MatchGrid:
     return MatchGrid(np.ascontiguousarray(pooled), grid.origin.copy(), grid.resolution * f, float(NEUTRAL))
 
 
-def submap_content(grid) -> np.ndarray:
+def submap_content(grid, min_points: int = 0, max_length: float = 0.0) -> np.ndarray:
     """Centres (local frame) of a finished submap's cells more likely occupied than not (hit more often
-    than the misses cancel), thinned to one per 2 × 2 coarse cells (the coarse search costs as many points)."""
+    than the misses cancel), thinned to one per 2 × 2 coarse cells, then by the adaptive voxel filter
+    to about ``min_points`` (cells up to ``max_length``; 0: not), the budget of a node's loop-closure
+    points: the search costs time in proportion to the points, and a submap's walls sampled as
+    densely as one scan's still place it (measured against the sparse logs' ground truth, the
+    coarse pose lands within the regular window as often as with every 2 × 2 cells' point)."""
     rows, cols = np.nonzero((grid.known > 0) & (grid.prob > NEUTRAL))
     pts = grid.origin + (np.stack([cols, rows], axis=1) + 0.5) * grid.resolution
-    return voxel_filter(pts, 2 * grid.resolution * COARSE_FACTOR)
+    return adaptive_voxel_filter(voxel_filter(pts, 2 * grid.resolution * COARSE_FACTOR), min_points, max_length)
 
 
 def coarse_match(content: np.ndarray, centre: np.ndarray, initial, target: MatchGrid, linear_window: float,
