@@ -322,3 +322,67 @@ def test_loops_on_a_run_whose_stamps_go_back_and_repeat(tmp_path):
     out = json.loads(r.stdout)
     assert out["ground_truth"]["final_graph"]["precision"] == pytest.approx(0.4)
     assert out["own"]["accepted"]["true"] >= 1
+
+
+def _bent(poses, k, degrees):
+    """``poses`` with everything from scan ``k`` on turned by ``degrees`` about scan k's position."""
+    out = np.array(poses, dtype=float)
+    turn = compose(compose(np.r_[out[k, :2], 0.0], np.array([0.0, 0.0, math.radians(degrees)])), np.r_[-out[k, :2], 0.0])
+    for i in range(k, len(out)):
+        out[i] = compose(turn, out[i])
+    return out
+
+
+def test_consistency_prefers_the_true_trajectory_on_the_simulator():
+    """The raw scans at the simulator's true poses agree with each other; the same trajectory bent by
+    1° halfway (a wrong turn that no loop repaired) puts walls into free space where the robot comes
+    back, and scores worse, on the same scans."""
+    from conftest import BUNDLED
+
+    from slam2d.config import load_config
+    from slam2d.eval.consistency import compare, scan_nodes
+    from slam2d.io.source import open_source
+
+    truth = np.array([s.ground_truth for s in open_source(BUNDLED)], dtype=float)
+    cfg = load_config(None)
+    bent = _bent(truth, len(truth) // 2, 1.0)
+    out = compare(open_source(BUNDLED), cfg, {"truth": truth, "bent": bent})
+    t, b = out["truth"], out["bent"]
+    assert t["scans_checked"] == b["scans_checked"] > 100 and t["revisits_checked"] > 0
+    assert t["scans_agreeing"] >= 0.95 and t["mean_violation"] < 0.02
+    assert b["revisit_mean_violation"] > 2 * t["revisit_mean_violation"] and b["revisits_agreeing"] < 0.95
+    assert b["mean_violation"] > t["mean_violation"]
+    # the scans are those the motion filter passes along the first trajectory, each with its range data
+    nodes = scan_nodes(open_source(BUNDLED), cfg, truth)
+    assert len(nodes) >= t["scans_checked"]  # a scan no neighbour sees is not checked
+    assert all(np.linalg.norm(nodes[i + 1].local_pose[:2] - nodes[i].local_pose[:2]) > cfg.motion_filter.max_distance
+               or abs(math.remainder(nodes[i + 1].local_pose[2] - nodes[i].local_pose[2], 2 * math.pi))
+               > math.radians(cfg.motion_filter.max_angle_deg)
+               or nodes[i + 1].time - nodes[i].time > cfg.motion_filter.max_time for i in range(len(nodes) - 1))
+    # a trajectory without a pose for some scans: those scans are left out for every trajectory
+    holes = bent.copy()
+    holes[::2] = np.nan
+    part = compare(open_source(BUNDLED), cfg, {"truth": truth, "holes": holes})
+    assert part["truth"]["scans_checked"] == part["holes"]["scans_checked"] < t["scans_checked"]
+
+
+def test_consistency_cli(tmp_path):
+    from conftest import BUNDLED
+
+    run = tmp_path / "sim"
+    r = slam2d("run", BUNDLED, "--out", run, "--no-progress", "--max-scans", "400")
+    assert r.returncode == 0, r.stderr
+    r = slam2d("eval", "consistency", run / "trajectory.txt", "--against", BUNDLED, "--json")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert list(out) == [str(run / "trajectory.txt"), str(BUNDLED)]
+    assert out[str(BUNDLED)]["scans_checked"] == out[str(run / "trajectory.txt")]["scans_checked"] > 0
+    r = slam2d("eval", "consistency", run / "trajectory.txt")
+    assert r.returncode == 0 and r.stdout.count("\n") == 1 and "agreeing" in r.stdout
+    # a trajectory with no run folder beside it: the log must be named
+    (tmp_path / "t").mkdir()
+    (tmp_path / "t" / "trajectory.txt").write_text((run / "trajectory.txt").read_text())
+    r = slam2d("eval", "consistency", tmp_path / "t" / "trajectory.txt")
+    assert r.returncode != 0 and r.stderr.count("\n") == 1 and "--run-input" in r.stderr
+    r = slam2d("eval", "consistency", tmp_path / "t" / "trajectory.txt", "--run-input", BUNDLED)
+    assert r.returncode == 0, r.stderr

@@ -144,6 +144,10 @@ def test_benchmark_runs_every_suite_on_tiny_logs(tmp_path):
     assert list(health) == ["7", "8", "9"] and set(health.values()) <= {"OK", "WARN", "BROKEN"}
     for seed, status in health.items():  # a seed whose run is not OK is named in the table
         assert (f"seed {seed}: {by_seed[seed]:.3f}, {status}" in md) == (status != "OK")
+    # the raw scans' free-space test at the run's poses and at the ground truth's, on the same scans
+    c = sp["consistency_vs_ground_truth"]
+    assert set(c) == {"slam2d", "ground_truth"} and c["slam2d"]["scans_checked"] == c["ground_truth"]["scans_checked"] > 0
+    assert (f"{c['slam2d']['mean_violation']:.4f} / " in md and f"; {c['ground_truth']['mean_violation']:.4f} / " in md)
     for row in b["degraded"] + b["clinic"]:
         assert row["slam2d"]["peak_rss_mb"] > 0 and row["slam2d"]["wall_s"] > 0
     try:

@@ -198,6 +198,20 @@ def loops_vs_ground_truth(run_dir: Path, gt_path: Path) -> dict | None:
     return out
 
 
+def consistency_vs_ground_truth(run_dir: Path, gt_path: Path, log: Path) -> dict:
+    """``slam2d eval consistency RUN_DIR/trajectory.txt --against GT``: the raw scans' free-space test
+    at the run's poses and at the ground truth's, on the same scans (``slam2d/eval/consistency.py``)."""
+    from slam2d.config import load_config
+    from slam2d.eval.consistency import compare
+    from slam2d.eval.reference import load_ground_truth
+    from slam2d.io.source import open_source
+    from slam2d.io.trajectory import read_tum
+
+    t, poses, _ = read_tum(run_dir / "trajectory.txt")
+    gt = load_ground_truth(gt_path, t)
+    return compare(open_source(log), load_config(run_dir / "config.yaml"), {"slam2d": poses, "ground_truth": gt.poses})
+
+
 def bench_degraded(name: str, log: Path, args, outdir: Path) -> dict:
     rel = args.shared / "datasets" / name / f"{name}.relations"
     row = run_log(f"degraded-{name}", log, args, outdir)
@@ -227,6 +241,8 @@ def bench_sparse(name: str, log: Path, gt: Path, args, outdir: Path, corrected: 
     row["dataset"], row["ground_truth"] = name, str(gt)
     row["slam2d"]["ate"] = ate_vs_ground_truth(outdir / f"sparse-{name}" / "trajectory.txt", gt)
     row["slam2d"]["loops_vs_ground_truth"] = loops_vs_ground_truth(outdir / f"sparse-{name}", gt)
+    # is the ground truth, itself a SLAM solution, better supported by the raw scans than the run?
+    row["slam2d"]["consistency_vs_ground_truth"] = consistency_vs_ground_truth(outdir / f"sparse-{name}", gt, log)
     if "trajectory" in row.get("karto", {}):
         row["karto"]["ate"] = ate_vs_ground_truth(Path(row["karto"]["trajectory"]), gt)
     by_seed = {str(args.sparse_seed): row["slam2d"]["ate"]["trans_m"]["rmse"]}
@@ -470,7 +486,11 @@ def main(argv=None) -> int:
                "twice the other's share and at least 30 %). The same corrected logs made with the seeds "
                f"{', '.join(str(x) for x in args.sparse_spread) or '(none)'} as well (`--sparse-spread`: the same "
                "scans, other odometry noise; slam2d alone) give the ATE's median and range over the seeds: one "
-               "seed's figure can be luck.", "",
+               "seed's figure can be luck. Where the ATE is large, is the run wrong or the ground truth? The raw "
+               "scans' free-space test of the map health report, put to both trajectories on the same scans "
+               "(`slam2d eval consistency RUN/trajectory.txt --against GT`): the mean share of a scan's hits inside "
+               "its neighbours' free space, over all scans and over the revisits (neighbours from other passes); "
+               "lower is better supported.", "",
                sparse_table(by_suite["sparse"]), ""]
     if "clinic" in suites:
         md += ["## fr-clinic", "", "No ground truth: wall time, peak RSS, loop closures and the run's own health report.",

@@ -1,4 +1,4 @@
-"""``slam2d eval relations | ate | loops``."""
+"""``slam2d eval relations | ate | loops | consistency``."""
 from __future__ import annotations
 
 import argparse
@@ -13,11 +13,12 @@ EXAMPLES = """examples:
   slam2d eval loops runs/intel --reference ../shared/datasets/intel/intel.gfs.log
   slam2d eval loops runs/orebro --ground-truth sparse/orebro.gt.txt
   slam2d eval loops runs/sim --ground-truth data/sim_office.mcap
+  slam2d eval consistency runs/orebro/trajectory.txt --against sparse/orebro.gt.txt
 """
 
 
 def add_eval_parser(sub):
-    p = sub.add_parser("eval", help="evaluate a trajectory (relations metric, ATE/RPE, loop closures)",
+    p = sub.add_parser("eval", help="evaluate a trajectory (relations metric, ATE/RPE, loop closures, free-space consistency)",
                        epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
     es = p.add_subparsers(dest="eval_command", metavar="METRIC")
 
@@ -51,6 +52,19 @@ def add_eval_parser(sub):
     lp.add_argument("--revisit-distance", type=float, default=1.0, help="recall: a revisit comes this close [m]")
     lp.add_argument("--plot-dir", default=None, help="write loops_on_map.png and loop_scores.png here (default RUN_DIR)")
     lp.add_argument("--json", action="store_true")
+
+    c = es.add_parser("consistency",
+                      help="free-space consistency of the raw scans at a trajectory's poses (no reference needed), "
+                           "and at other trajectories' for comparison")
+    c.add_argument("trajectory", help="TUM trajectory with one pose per scan (e.g. RUN_DIR/trajectory.txt)")
+    c.add_argument("--against", action="append", default=[], metavar="TUM",
+                   help="another trajectory of the same log (TUM or MCAP with /ground_truth, matched to the scans as "
+                        "eval loops --ground-truth does), tested on the same scans; may be repeated")
+    c.add_argument("--run-input", default=None, help="the log (default: 'input' in summary.json beside the trajectory)")
+    c.add_argument("--config", default=None,
+                   help="config whose range filter and motion filter pick the scans (default: config.yaml beside the "
+                        "trajectory, else the defaults)")
+    c.add_argument("--json", action="store_true")
     return p
 
 
@@ -71,8 +85,8 @@ def run_eval(args) -> int:
     from slam2d.errors import UsageError
 
     if args.eval_command is None:
-        raise UsageError("eval: choose a metric: relations, ate or loops (see slam2d eval --help)")
-    return {"relations": _relations, "ate": _ate, "loops": _loops}[args.eval_command](args)
+        raise UsageError("eval: choose a metric: relations, ate, loops or consistency (see slam2d eval --help)")
+    return {"relations": _relations, "ate": _ate, "loops": _loops, "consistency": _consistency}[args.eval_command](args)
 
 
 def _relations(args) -> int:
@@ -156,6 +170,35 @@ def _loops(args) -> int:
     plot_score_histogram(plot_dir / "loop_scores.png", out["score_histogram"], "loop-closure scores")
     out.pop("score_histogram") if not args.json else None
     _print(out, args.json)
+    return 0
+
+
+def _consistency(args) -> int:
+    from slam2d.config import load_config
+    from slam2d.errors import UsageError
+    from slam2d.eval.consistency import compare
+    from slam2d.eval.reference import load_ground_truth, run_input_of
+    from slam2d.io.source import open_source
+    from slam2d.io.trajectory import read_tum
+
+    traj = Path(args.trajectory)
+    t, poses, _ = read_tum(traj)
+    log = run_input_of(traj, args.run_input)
+    if log is None:
+        raise UsageError(f"{traj}: no summary.json beside it names the log; give it with --run-input")
+    cfg_path = Path(args.config) if args.config else traj.parent / "config.yaml"
+    cfg = load_config(cfg_path if (args.config or cfg_path.exists()) else None)
+    trajectories = {str(traj): poses}
+    for other in args.against:
+        trajectories[other] = load_ground_truth(other, t).poses
+    out = compare(open_source(log), cfg, trajectories)
+    if args.json:
+        print(json.dumps(out, indent=2))
+        return 0
+    for name, c in out.items():
+        print(f"{name}: {c['scans_checked']} scans, {c['scans_agreeing']} agreeing, mean violation {c['mean_violation']}; "
+              f"revisits {c['revisits_checked']}, {c['revisits_agreeing']} agreeing, mean violation "
+              f"{c['revisit_mean_violation']}")
     return 0
 
 
