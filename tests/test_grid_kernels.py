@@ -73,6 +73,28 @@ def test_one_hit_per_cell_per_scan():
     assert g.logodds[r, c] == pytest.approx(logit(0.55))
 
 
+def test_a_cell_at_its_clamp_is_not_written_again():
+    """Most misses land on cells already at the lower clamp, and most repeated hits on cells at the
+    upper one: those are skipped (the float64 clamp is compared with the float32 cell as stored),
+    while every other crossed cell is updated as before."""
+    g = ProbabilityGrid(0.05)
+    g.insert((0.0, 0.0), np.array([[3.0, 0.025]]))
+    for _ in range(200):  # the ray's cells reach the lower clamp, its end cell the upper one
+        g.insert((0.0, 0.0), np.array([[3.0, 0.025]]))
+    r, c0 = np.floor((np.array([0.0, 0.025]) - g.origin) / 0.05).astype(int)[::-1]
+    free = (r, c0 + 20)  # a cell 1 m along the ray
+    end = tuple(np.floor((np.array([3.0, 0.025]) - g.origin) / 0.05).astype(int)[::-1])
+    assert g.logodds[free] == np.float32(g.lo_min) and g.logodds[end] == np.float32(g.lo_max)
+    g.prob[free] = g.prob[end] = 0.5  # marks: a cell written again would get its probability back
+    g.insert((0.0, 0.0), np.array([[3.0, 0.025], [0.0, 3.0]]))
+    assert g.prob[free] == 0.5 and g.prob[end] == 0.5
+    assert g.logodds[free] == np.float32(g.lo_min) and g.logodds[end] == np.float32(g.lo_max)
+    # a fresh ray's cells are updated as always
+    r2, c2 = np.floor((np.array([0.0, 1.0]) - g.origin) / 0.05).astype(int)[::-1]
+    assert g.logodds[r2, c2] == pytest.approx(logit(0.49), abs=1e-6)
+    assert g.prob[r2, c2] == pytest.approx(0.49, abs=1e-6)
+
+
 def test_no_return_rays_free_only():
     g = ProbabilityGrid(0.05)
     g.insert((0.0, 0.0), np.zeros((0, 2)), np.array([[2.0, 0.0]]))

@@ -22,7 +22,7 @@ def _apply(logodds, prob, stamp, r, c, scan_id, delta, lo_min, lo_max):
         v = lo_min
     elif v > lo_max:
         v = lo_max
-    if v == old:  # clamped: most misses land on cells already at the minimum
+    if np.float32(v) == old:  # clamped (compared as stored: the clamp is a float64 the float32 cell rounds)
         return False
     logodds[r, c] = v
     prob[r, c] = 1.0 / (1.0 + math.exp(-v))
@@ -102,7 +102,7 @@ def insert_rays(logodds, prob, stamp, scan_id, ox, oy, ends, is_hit, hit_delta, 
                     v = lo_min
                 elif v > lo_max:
                     v = lo_max
-                if v != old:  # most misses land on cells already at the clamp
+                if np.float32(v) != old:  # most misses land on cells already at the clamp (compared as stored)
                     logodds[ry, cx] = v
                     prob[ry, cx] = 1.0 / (1.0 + math.exp(-v))
                     if (old > 0.0) != (v > 0.0):
