@@ -386,3 +386,20 @@ def test_consistency_cli(tmp_path):
     assert r.returncode != 0 and r.stderr.count("\n") == 1 and "--run-input" in r.stderr
     r = slam2d("eval", "consistency", tmp_path / "t" / "trajectory.txt", "--run-input", BUNDLED)
     assert r.returncode == 0, r.stderr
+
+
+def test_consistency_against_a_corrected_carmen_log(tmp_path):
+    """A corrected CARMEN log's key scans (matched to the run's scans by their ranges) against raw
+    odometry: the scans support GMapping's poses better than the odometry's, on the same scans."""
+    src = dataset("intel")
+    run = tmp_path / "run"
+    assert slam2d("run", src, "--out", run, "--odometry-only", "--no-progress", "--max-scans", "3000").returncode == 0
+    r = slam2d("eval", "consistency", run / "trajectory.txt", "--against", SHARED / "intel" / "intel.gfs.log", "--json")
+    assert r.returncode == 0, r.stderr
+    odo, ref = json.loads(r.stdout).values()
+    from slam2d.eval.reference import load_reference
+
+    t, _, _ = read_tum(run / "trajectory.txt")
+    keys = len(load_reference(SHARED / "intel" / "intel.gfs.log", t, str(src)).scan_indices)
+    assert 0 < odo["scans_checked"] == ref["scans_checked"] <= keys
+    assert ref["mean_violation"] < odo["mean_violation"] and ref["scans_agreeing"] > odo["scans_agreeing"]

@@ -58,8 +58,9 @@ def add_eval_parser(sub):
                            "and at other trajectories' for comparison")
     c.add_argument("trajectory", help="TUM trajectory with one pose per scan (e.g. RUN_DIR/trajectory.txt)")
     c.add_argument("--against", action="append", default=[], metavar="TUM",
-                   help="another trajectory of the same log (TUM or MCAP with /ground_truth, matched to the scans as "
-                        "eval loops --ground-truth does), tested on the same scans; may be repeated")
+                   help="another trajectory of the same log, tested on the same scans; may be repeated: TUM or MCAP "
+                        "with /ground_truth (matched to the scans as eval loops --ground-truth does), or a corrected "
+                        "CARMEN log (*.gfs.log, *-corrected.log*: its key scans, matched by their ranges)")
     c.add_argument("--run-input", default=None, help="the log (default: 'input' in summary.json beside the trajectory)")
     c.add_argument("--config", default=None,
                    help="config whose range filter and motion filter pick the scans (default: config.yaml beside the "
@@ -177,7 +178,7 @@ def _consistency(args) -> int:
     from slam2d.config import load_config
     from slam2d.errors import UsageError
     from slam2d.eval.consistency import compare
-    from slam2d.eval.reference import load_ground_truth, run_input_of
+    from slam2d.eval.reference import run_input_of
     from slam2d.io.source import open_source
     from slam2d.io.trajectory import read_tum
 
@@ -190,7 +191,7 @@ def _consistency(args) -> int:
     cfg = load_config(cfg_path if (args.config or cfg_path.exists()) else None)
     trajectories = {str(traj): poses}
     for other in args.against:
-        trajectories[other] = load_ground_truth(other, t).poses
+        trajectories[other] = _poses_of(other, t, log)
     out = compare(open_source(log), cfg, trajectories)
     if args.json:
         print(json.dumps(out, indent=2))
@@ -200,6 +201,19 @@ def _consistency(args) -> int:
               f"revisits {c['revisits_checked']}, {c['revisits_agreeing']} agreeing, mean violation "
               f"{c['revisit_mean_violation']}")
     return 0
+
+
+def _poses_of(path, stamps, run_input) -> np.ndarray:
+    """One pose per scan of the run (NaN where ``path`` has none): a corrected CARMEN log's key scans,
+    else a ground truth as ``load_ground_truth`` reads it."""
+    from slam2d.eval.reference import is_carmen, load_ground_truth, load_reference
+
+    if is_carmen(Path(path)) or Path(path).name.lower().endswith(".gfs.log"):
+        ref = load_reference(path, stamps, run_input)
+        dense = np.full((len(stamps), 3), np.nan)
+        dense[ref.scan_indices] = ref.poses
+        return dense
+    return load_ground_truth(path, stamps).poses
 
 
 def _odometry(run_input, n):
