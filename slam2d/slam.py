@@ -207,9 +207,7 @@ class Slam:
                 self._global(gs.add_finished_submap, sub)
             self._stage("global", (time.perf_counter() - t1) * 1e3)
         if res.inserted:
-            rd = res.range_data
-            self.nodes.append(Node(i, scan.timestamp, np.asarray(res.local_pose, dtype=float), rd.hits.astype(np.float32),
-                                   rd.misses.astype(np.float32), rd.origin.astype(np.float32), rd.far))
+            self.nodes.append(Node.of(i, scan.timestamp, res.local_pose, res.range_data))
         self.observer.on_scan(scan, res)
         local = self._local[-1]
         glob = local.copy() if gs is None else compose(gs.correction, local)

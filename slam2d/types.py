@@ -118,6 +118,12 @@ class Node:
     origin: np.ndarray
     far_misses: int = 0  # the first ``far_misses`` misses are returns beyond max_range, the rest no-returns
 
+    @classmethod
+    def of(cls, scan_index: int, time: float, pose, rd) -> "Node":
+        """The node of a scan at ``pose`` with its ``range_data.RangeData`` ``rd`` (kept as float32)."""
+        return cls(scan_index, time, np.array(pose, dtype=float), rd.hits.astype(np.float32),
+                   rd.misses.astype(np.float32), rd.origin.astype(np.float32), rd.far)
+
 
 @dataclass
 class Estimate:

@@ -209,10 +209,7 @@ def _poses_of(path, stamps, run_input) -> np.ndarray:
     from slam2d.eval.reference import is_carmen, load_ground_truth, load_reference
 
     if is_carmen(Path(path)) or Path(path).name.lower().endswith(".gfs.log"):
-        ref = load_reference(path, stamps, run_input)
-        dense = np.full((len(stamps), 3), np.nan)
-        dense[ref.scan_indices] = ref.poses
-        return dense
+        return load_reference(path, stamps, run_input).dense(None)
     return load_ground_truth(path, stamps).poses
 
 

@@ -34,9 +34,7 @@ def scan_nodes(source, cfg, poses: np.ndarray) -> list[Node]:
         p = poses[i]
         if not np.all(np.isfinite(p)) or mf.is_similar(scan.timestamp, p):
             continue
-        rd = range_data(scan, cfg.range_filter)
-        out.append(Node(i, scan.timestamp, p.copy(), rd.hits.astype(np.float32), rd.misses.astype(np.float32),
-                        rd.origin.astype(np.float32), rd.far))
+        out.append(Node.of(i, scan.timestamp, p, range_data(scan, cfg.range_filter)))
     return out
 
 
