@@ -104,6 +104,13 @@ def test_benchmark_finds_corrected_logs_and_caches_generated_ones(tmp_path):
     deg = benchmark.degraded_log(args, "tiny")
     assert deg.exists() and deg.parent.parent.name.startswith("degrade-seed1-")
     assert len(list(open_source(deg))) == 100
+    # the dropped-beams copy: its own folder beside it, the same scans with no-returns among their readings
+    drop = benchmark.dropout_log(args, "tiny")
+    assert drop.parent.parent == deg.parent.parent and drop.parent != deg.parent
+    scans, clean = list(open_source(drop)), list(open_source(deg))
+    assert len(scans) == 100
+    dropped = np.mean([s.no_return.mean() - c.no_return.mean() for s, c in zip(scans, clean)])
+    assert abs(dropped - benchmark.BEAM_DROPOUT) < 0.05
 
 
 def test_benchmark_runs_every_suite_on_tiny_logs(tmp_path):
@@ -116,11 +123,13 @@ def test_benchmark_runs_every_suite_on_tiny_logs(tmp_path):
                        capture_output=True, text=True, cwd=ROOT, timeout=900)
     assert r.returncode == 0, r.stderr
     md = (tmp_path / "B.md").read_text()
-    for heading in ("## Relations logs", "## Degraded odometry", "## Without odometry", "## Sparse logs", "## fr-clinic",
-                    "## Simulated sensors and robots"):
+    for heading in ("## Relations logs", "## Degraded odometry", "## Dropped beams", "## Without odometry", "## Sparse logs",
+                    "## fr-clinic", "## Simulated sensors and robots"):
         assert heading in md
     b = json.loads((tmp_path / "b.json").read_text())
     assert [row["dataset"] for row in b["rows"]] == ["tiny"] and [row["dataset"] for row in b["degraded"]] == ["tiny"]
+    assert [row["dataset"] for row in b["dropout"]] == ["tiny"] and "relations" in b["dropout"][0]["slam2d"]
+    assert (out / "runs" / "dropout-tiny" / "trajectory.txt").exists()
     # the relations logs (the speed targets) are timed --speed-repeat times, the other suites once
     assert len(b["rows"][0]["slam2d"]["wall_s_runs"]) == 2 and len(b["degraded"][0]["slam2d"]["wall_s_runs"]) == 1
     assert "median wall time and largest peak of 2 runs" in md

@@ -55,6 +55,22 @@ def degraded_log(args, name: str) -> Path:
     return d / f"{name}.clf"
 
 
+#: ``degrade.py --beam-dropout``: the share of readings the dropped-beams copies turn into no-returns
+BEAM_DROPOUT = 0.3
+
+
+def dropout_log(args, name: str) -> Path:
+    """``degrade.py IN OUT --seed 1 --beam-dropout 0.3`` of a relations log (its default odometry
+    model, and three readings in ten replaced by the log's no-return value: dark, glossy and
+    glass surfaces that return no echo), cached."""
+    tool = args.shared / "tools" / "degrade.py"
+    log = args.shared / "datasets" / name / f"{name}.clf.bz2"
+    d = cached(args.cache, tool, args.degrade_seed, f"{name}-dropout{round(BEAM_DROPOUT * 100)}", log,
+               lambda tmp: _tool([tool, log, tmp / f"{name}.clf", "--seed", args.degrade_seed,
+                                  "--beam-dropout", BEAM_DROPOUT]))
+    return d / f"{name}.clf"
+
+
 def corrected_logs(datasets: Path) -> list[tuple[str, Path]]:
     """(dataset folder name, path) of every GMapping-corrected log under ``datasets``."""
     pat = re.compile(r"(\.gfs\.log|-corrected\.log(\.gz)?)$")

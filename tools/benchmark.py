@@ -10,6 +10,8 @@ Suites (issue 11), all in one run by default, `--suite` selects some:
   relations  intel / aces / fr079, relations metric on the dataset's `.relations`;
   degraded   the same logs with worse odometry (`../shared/tools/degrade.py IN OUT --seed 1`,
              its defaults), scored on the original `.relations`;
+  dropout    the degraded logs with three readings in ten turned into no-returns as well
+             (`degrade.py ... --beam-dropout 0.3`: dark, glossy and glass surfaces), relations;
   no-odometry  the same logs run with `slam2d run --no-odometry` (odometry is optional), relations;
   sparse     `../shared/tools/make_sparse.py OUTDIR LOG --seed 7` of every corrected log found in
              ../shared/datasets (`*.gfs.log`, `*-corrected.log*`, any depth); ATE RMSE and loop
@@ -25,7 +27,7 @@ Generated logs go to a cache folder outside the repository (`--cache`, default
 `$XDG_CACHE_HOME/slam2d-benchmark` or `~/.cache/slam2d-benchmark`), in a subfolder keyed on the
 seed and the generating tool's sha256, and are made again only when missing.
 The Karto peer (`--peers`) runs beside slam2d on every CARMEN FLASER log (relations, degraded,
-sparse); it cannot read fr-clinic's ROBOTLASER1 records. `bench_logs.py` makes and caches the
+dropout, sparse); it cannot read fr-clinic's ROBOTLASER1 records. `bench_logs.py` makes and caches the
 generated logs, `bench_tables.py` writes the tables.
 
 Each run is a whole `slam2d run` process: wall time and peak memory are what the OS
@@ -52,12 +54,13 @@ sys.path.insert(0, str(ROOT))
 
 sys.path.insert(0, str(ROOT / "tools"))
 
-from bench_logs import SIM_VARIANTS, corrected_logs, default_cache, degraded_log, sim_log, sparse_log  # noqa: E402
+from bench_logs import (BEAM_DROPOUT, SIM_VARIANTS, corrected_logs, default_cache, degraded_log, dropout_log,  # noqa: E402
+                        sim_log, sparse_log)
 from bench_tables import TARGETS, clinic_table, degraded_table, simulated_table, sparse_table, table  # noqa: E402
 
 SHARED = ROOT.parent / "shared"
 REFERENCE_LOGS = {"intel": "intel.gfs.log", "aces": "aces-corrected.log.gz", "fr079": "freiburg-079-corrected.log.gz"}
-SUITES = ("relations", "degraded", "no-odometry", "sparse", "clinic", "simulated")
+SUITES = ("relations", "degraded", "dropout", "no-odometry", "sparse", "clinic", "simulated")
 LOOP_TOLERANCE = (0.3, 2.0)  # m, deg: slam2d eval loops --ground-truth defaults
 
 
@@ -212,11 +215,11 @@ def consistency_vs_ground_truth(run_dir: Path, gt_path: Path, log: Path) -> dict
     return compare(open_source(log), load_config(run_dir / "config.yaml"), {"slam2d": poses, "ground_truth": gt.poses})
 
 
-def bench_degraded(name: str, log: Path, args, outdir: Path) -> dict:
+def bench_degraded(name: str, log: Path, args, outdir: Path, kind: str = "degraded") -> dict:
     rel = args.shared / "datasets" / name / f"{name}.relations"
-    row = run_log(f"degraded-{name}", log, args, outdir)
+    row = run_log(f"{kind}-{name}", log, args, outdir)
     row["dataset"] = name
-    row["slam2d"]["relations"] = relations_of(outdir / f"degraded-{name}" / "trajectory.txt", rel)
+    row["slam2d"]["relations"] = relations_of(outdir / f"{kind}-{name}" / "trajectory.txt", rel)
     if "trajectory" in row.get("karto", {}):
         row["karto"]["relations"] = relations_of(Path(row["karto"]["trajectory"]), rel)
     return row
@@ -399,6 +402,10 @@ def main(argv=None) -> int:
         for n in relation_names:
             log = degraded_log(args, n)
             jobs.append(("degraded", log, lambda n=n, log=log: bench_degraded(n, log, args, runs)))
+    if "dropout" in suites:
+        for n in relation_names:
+            log = dropout_log(args, n)
+            jobs.append(("dropout", log, lambda n=n, log=log: bench_degraded(n, log, args, runs, "dropout")))
     if "no-odometry" in suites:
         jobs += [("no-odometry", datasets / n / f"{n}.clf.bz2", lambda n=n: bench_no_odometry(n, args, runs))
                  for n in relation_names]
@@ -435,6 +442,7 @@ def main(argv=None) -> int:
             "cache": str(args.cache),
             "targets": TARGETS}
     Path(args.json).write_text(json.dumps({"meta": meta, "rows": rows, "degraded": by_suite["degraded"],
+                                           "dropout": by_suite["dropout"],
                                            "no_odometry": by_suite["no-odometry"], "sparse": by_suite["sparse"], "clinic": by_suite["clinic"],
                                            "simulated": by_suite["simulated"]},
                                           indent=2, default=float) + "\n")
@@ -468,6 +476,13 @@ def main(argv=None) -> int:
                f"`degrade.py IN OUT --seed {args.degrade_seed}` (its default odometry model) of each relations log, scored "
                "on the original `.relations`; the target is Cartographer's published figure for the clean log.", "",
                degraded_table(by_suite["degraded"]), ""]
+    if "dropout" in suites:
+        md += ["## Dropped beams", "",
+               f"`degrade.py IN OUT --seed {args.degrade_seed} --beam-dropout {BEAM_DROPOUT}` of each relations log: "
+               "the degraded odometry above, and three readings in ten replaced by the log's no-return value, "
+               "as dark, glossy and glass surfaces give no echo. Scored on the original `.relations`; the target is "
+               "Cartographer's published figure for the clean log.", "",
+               degraded_table(by_suite["dropout"], "dropped beams"), ""]
     if "no-odometry" in suites:
         md += ["## Without odometry", "",
                "The relations logs run with `--no-odometry` (the log's wheel odometry ignored; each scan predicted "
