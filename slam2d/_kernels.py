@@ -30,14 +30,18 @@ def _put(out, k, length, angle, ox, oy, c0, s0):
 
 @njit(cache=True)
 def scan_to_range_data(ranges, valid, no_return, angle_min, angle_increment, min_range, max_range, miss_length,
-                       ox, oy, oth, hits, misses):
+                       ox, oy, oth, hits, misses, surface_gap):
     """Hits and free-space ray ends of one scan in the tracking frame (laser mount ``ox, oy, oth``).
 
     Valid readings within [min_range, max_range] are hits; valid readings beyond max_range
     become misses cut at max_range; no-return beams become misses of ``miss_length`` (none
-    when it is 0). Writes into ``hits`` / ``misses`` (capacity = beam count each) and
-    returns (number of hits, number of misses, number of far misses); misses come far ones
-    first, then no-returns, each in beam order.
+    when it is 0), cut at the nearer of the two returns that flank them (the nearest valid
+    reading on either side, in beam order) where those two lie at most ``surface_gap`` apart:
+    both beams beside it met one surface, so this beam met it too and got no echo (a dark or
+    glossy patch, glass); free space beyond it would erase that surface from the map. Writes
+    into ``hits`` / ``misses`` (capacity = beam count each) and returns (number of hits,
+    number of misses, number of far misses); misses come far ones first, then no-returns,
+    each in beam order.
     """
     n = ranges.shape[0]
     c0 = math.cos(oth)
@@ -55,10 +59,36 @@ def scan_to_range_data(ranges, valid, no_return, angle_min, angle_increment, min
             _put(misses, nm, max_range, angle_min + angle_increment * i, ox, oy, c0, s0)
             nm += 1
     far = nm
+    ends = np.empty(n)
     if miss_length > 0.0:
+        # the nearest valid reading before each beam (its index, or -1): a no-return's left flank
+        left = np.empty(n, dtype=np.int64)
+        last = -1
+        for i in range(n):
+            left[i] = last
+            if valid[i] and not no_return[i] and float(ranges[i]) >= min_range:
+                last = i
+        right = -1
+        for i in range(n - 1, -1, -1):
+            if valid[i] and not no_return[i] and float(ranges[i]) >= min_range:
+                right = i
+                continue
+            if not no_return[i]:
+                continue
+            length = miss_length
+            a = left[i]
+            if a >= 0 and right >= 0:
+                ra = float(ranges[a])
+                rb = float(ranges[right])
+                ta = angle_min + angle_increment * a
+                tb = angle_min + angle_increment * right
+                gap = math.hypot(ra * math.cos(ta) - rb * math.cos(tb), ra * math.sin(ta) - rb * math.sin(tb))
+                if gap <= surface_gap:  # one surface on both sides: the beam met it too
+                    length = min(length, ra, rb)
+            ends[i] = length
         for i in range(n):
             if no_return[i]:
-                _put(misses, nm, miss_length, angle_min + angle_increment * i, ox, oy, c0, s0)
+                _put(misses, nm, ends[i], angle_min + angle_increment * i, ox, oy, c0, s0)
                 nm += 1
     return nh, nm, far
 

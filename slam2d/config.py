@@ -25,7 +25,7 @@ class RangeFilterConfig(_Section):
 
     min_range: float = Field(0.0, ge=0.0, description="Readings closer than this [m] are dropped (the sensor's own range_min always applies).")
     max_range: float = Field(30.0, gt=0.0, description="Hits farther than this [m] are not matched or inserted as hits; the ray up to it is inserted as free space.")
-    missing_data_ray_length: float = Field(5.0, ge=0.0, description="No-return beams insert free space up to this length [m] (0 disables); they never insert a hit.")
+    missing_data_ray_length: float = Field(5.0, ge=0.0, description="No-return beams insert free space up to this length [m] (0 disables), or only up to the nearer of the two returns beside them where those lie on one surface (a dark or glossy patch of a wall returns no echo either); they never insert a hit.")
     voxel_filter_size: float = Field(0.025, ge=0.0, description="Points are thinned to one per square cell of this size [m] before matching (0 disables).")
 
 

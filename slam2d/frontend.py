@@ -33,7 +33,7 @@ from slam2d.matching.real_time import RealTimeCorrelativeScanMatcher
 from slam2d.matching.refine import refine
 from slam2d.matching.search import SearchParameters, angular_step
 from slam2d.motion_filter import MotionFilter
-from slam2d.range_data import range_data, voxel_filter_index
+from slam2d.range_data import SAME_SURFACE_GAP, range_data, voxel_filter_index
 from slam2d.threads import CallerCores
 
 log = logging.getLogger(__name__)
@@ -112,7 +112,7 @@ DEGENERATE_RATIO = 0.01
 #: NORMAL_NEIGHBOUR_GAP (farther apart they lie on different surfaces) [m]
 NORMAL_NEIGHBOURS = (1, 2, 4, 8)
 NORMAL_MIN_BASELINE = 0.15
-NORMAL_NEIGHBOUR_GAP = 1.0
+NORMAL_NEIGHBOUR_GAP = SAME_SURFACE_GAP
 _NEIGHBOURS = np.array(NORMAL_NEIGHBOURS)  # as the kernel takes them, made once
 
 

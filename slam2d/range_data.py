@@ -5,6 +5,12 @@ farther than ``max_range`` become misses cut at ``max_range``; no-return beams b
 misses of length ``missing_data_ray_length``, never longer than the sensor's own range (a
 no-return says nothing lies within it; beyond, the space is unknown); NaN/invalid readings are
 dropped.
+
+Unlike Cartographer, a no-return beam between two returns from one surface (their end points
+at most ``SAME_SURFACE_GAP`` apart) is cut at the nearer of them: a laser gets no echo from
+dark, glossy or transparent patches of a wall as well as from open space, and a free ray
+through the wall behind such a patch erases the wall, and what lies behind it, from the
+submap (``_kernels.scan_to_range_data``).
 """
 from __future__ import annotations
 
@@ -17,6 +23,9 @@ from slam2d import _kernels
 from slam2d.config import RangeFilterConfig
 from slam2d.geometry import transform_points
 from slam2d.types import Scan
+
+#: two returns whose end points lie at most this far apart [m] are taken to lie on one surface
+SAME_SURFACE_GAP = 1.0
 
 
 @dataclass
@@ -44,7 +53,8 @@ def range_data(scan: Scan, cfg: RangeFilterConfig) -> RangeData:
     min_range = float(max(cfg.min_range, scan.range_min))
     nh, nm, far = _kernels.scan_to_range_data(scan.ranges, scan.valid, no_ret, float(scan.angle_min),
                                               float(scan.angle_increment), min_range, float(cfg.max_range),
-                                              float(miss_len), float(off[0]), float(off[1]), float(off[2]), hits, misses)
+                                              float(miss_len), float(off[0]), float(off[1]), float(off[2]), hits, misses,
+                                              SAME_SURFACE_GAP)
     return RangeData(np.array([float(off[0]), float(off[1])]), hits[:nh], misses[:nm], int(far))
 
 

@@ -4,7 +4,7 @@ import pytest
 
 from slam2d.config import RangeFilterConfig
 from slam2d.geometry import transform_points
-from slam2d.range_data import adaptive_voxel_filter, range_data, voxel_filter
+from slam2d.range_data import SAME_SURFACE_GAP, adaptive_voxel_filter, range_data, voxel_filter
 from slam2d.types import Scan
 
 
@@ -18,8 +18,17 @@ def range_data_oracle(scan: Scan, cfg: RangeFilterConfig):
     hits = np.stack([r[hit] * c[hit], r[hit] * s[hit]], axis=1)
     parts = [np.stack([cfg.max_range * c[far], cfg.max_range * s[far]], axis=1)]
     if cfg.missing_data_ray_length > 0:
-        length = min(cfg.missing_data_ray_length, cfg.max_range)
-        parts.append(np.stack([length * c[scan.no_return], length * s[scan.no_return]], axis=1))
+        length = np.full(len(r), min(cfg.missing_data_ray_length, cfg.max_range))
+        # cut at the nearer flank where both flanks (the nearest valid readings) lie on one surface
+        flank = np.flatnonzero(valid & ~scan.no_return)
+        for i in np.flatnonzero(scan.no_return):
+            left, right = flank[flank < i], flank[flank > i]
+            if len(left) and len(right):
+                a, b = left[-1], right[0]
+                if np.hypot(r[a] * c[a] - r[b] * c[b], r[a] * s[a] - r[b] * s[b]) <= SAME_SURFACE_GAP:
+                    length[i] = min(length[i], r[a], r[b])
+        nr = scan.no_return
+        parts.append(np.stack([length[nr] * c[nr], length[nr] * s[nr]], axis=1))
     off = scan.laser_offset
     return transform_points(off, hits), transform_points(off, np.vstack(parts)), int(far.sum())
 
@@ -43,10 +52,39 @@ def random_scan(rng, n=181):
                 laser_offset=np.array([0.2, -0.05, rng.uniform(-0.3, 0.3)]))
 
 
+def room_scan(rng, n=181, dropout=0.1):
+    """A robot in a 4 m × 3 m room with an open door (1.6 m wide, open space beyond) in its far wall:
+    the door's beams are no-returns, and ``dropout`` of the others too (a wall's dark patches)."""
+    a = np.linspace(-np.pi / 2, np.pi / 2, n)
+    c, s = np.cos(a), np.sin(a)
+    with np.errstate(divide="ignore"):
+        t = np.minimum(np.where(c > 0, 2.5 / c, np.inf), np.where(s > 0, 1.5 / s, np.where(s < 0, 1.5 / -s, np.inf)))
+    door = (c > 0) & (2.5 / np.maximum(c, 1e-9) <= t + 1e-9) & (np.abs(2.5 * np.tan(a)) < 0.8)
+    dropped = ~door & (rng.random(n) < dropout)
+    ranges = (t + rng.normal(0, 0.01, n)).astype(np.float32)
+    no_return = door | dropped
+    ranges[no_return] = 50.0
+    return Scan(0.0, ranges, a[0], a[1] - a[0], 0.1, 50.0, ~no_return, no_return=no_return,
+                laser_offset=np.zeros(3)), t, door, dropped
+
+
 @pytest.mark.parametrize("seed", range(5))
 @pytest.mark.parametrize("miss", [0.0, 5.0])
-def test_range_data_matches_oracle(seed, miss):
+@pytest.mark.parametrize("scene", ["random", "room"])
+def test_range_data_matches_oracle(seed, miss, scene):
     rng = np.random.default_rng(seed)
+    if scene == "room":
+        scan = room_scan(rng, dropout=0.3)[0]
+        cfg = RangeFilterConfig(min_range=0.5, max_range=30.0, missing_data_ray_length=miss)
+        hits, misses, far = range_data_oracle(scan, cfg)
+        rd = range_data(scan, cfg)
+        np.testing.assert_allclose(rd.hits, hits, atol=1e-12)
+        np.testing.assert_allclose(rd.misses, misses, atol=1e-12)
+        assert far == rd.far == 0
+        if miss:  # both kinds of no-return: cut at a wall, and the door's full length
+            lengths = np.hypot(*misses.T)
+            assert (lengths < 3.0).sum() > 10 and (lengths == 5.0).sum() > 10
+        return
     scan = random_scan(rng)
     cfg = RangeFilterConfig(min_range=0.5, max_range=30.0, missing_data_ray_length=miss)
     rd = range_data(scan, cfg)
@@ -204,3 +242,65 @@ def test_no_return_rays_stop_at_the_sensor_range():
         rd = range_data(scan, RangeFilterConfig())
         assert len(rd.hits) == 2 and len(rd.misses) == 2
         np.testing.assert_allclose(np.hypot(*rd.misses.T), want, rtol=1e-6)
+
+
+def test_dropped_beams_do_not_erase_the_walls():
+    """A third of the beams at the walls of a room come back without an echo (dark patches). Their
+    free-space rays stop at the wall, so the walls stay occupied and what lies behind them stays
+    unknown; through the open door, where no beam returns, free space goes on to
+    ``missing_data_ray_length``. With every no-return ray at its full length (as Cartographer
+    inserts them) the same scans mark the space behind the walls free: in a building, the next
+    room, whose walls are then weaker when the robot gets there."""
+    from slam2d.grid.probability_grid import ProbabilityGrid
+
+    cfg = RangeFilterConfig()
+    rng = np.random.default_rng(3)
+    scans = [room_scan(rng, dropout=0.3) for _ in range(30)]
+    t, door = scans[0][1], scans[0][2]
+    dropped_any = np.any([d for *_, d in scans], axis=0)
+    for scan, _, _, dropped in scans:
+        rd = range_data(scan, cfg)
+        lengths = np.hypot(*rd.misses.T)
+        beams = np.flatnonzero(scan.no_return)
+        # a dropped beam between two returns, with no door beam between them either: its ray ends
+        # at a flank, a few cm from the wall at most (next to the door it cannot be told from the
+        # door's beams, and keeps its full length)
+        returns = np.flatnonzero(~scan.no_return)
+        inner = []
+        for k, b in enumerate(beams):
+            if dropped[b] and returns[0] < b < returns[-1]:
+                lo, hi = returns[returns < b][-1], returns[returns > b][0]
+                if not door[lo:hi].any():
+                    inner.append(k)
+        assert len(inner) > 20
+        assert np.all(lengths[inner] <= t[beams[inner]] + 0.1)
+        np.testing.assert_allclose(lengths[door[beams]], cfg.missing_data_ray_length)
+
+    def build(full_rays: bool):
+        g = ProbabilityGrid(0.05)
+        for scan, *_ in scans:
+            rd = range_data(scan, cfg)
+            if full_rays:  # every no-return ray at its full length
+                m = rd.misses / np.hypot(*rd.misses.T)[:, None] * cfg.missing_data_ray_length
+                rd = type(rd)(rd.origin, rd.hits, m, rd.far)
+            g.insert(rd.origin, rd.hits, rd.misses)
+        return g
+
+    def value_at(g, pts):
+        p = g.probability(unknown_value=-1.0)
+        c = np.floor((pts - g.origin) / g.resolution).astype(int)
+        return p[c[:, 1], c[:, 0]]
+
+    # where beams were dropped: the wall cell, and a point 0.5 m behind it
+    a = scans[0][0].angles[dropped_any & ~door]
+    u = np.c_[np.cos(a), np.sin(a)]
+    wall, behind = u * t[dropped_any & ~door][:, None], u * (t[dropped_any & ~door][:, None] + 0.5)
+    d = scans[0][0].angles[door]
+    through = 4.0 * np.c_[np.cos(d), np.sin(d)]  # along the door's beams, well beyond it
+    ours, full = build(False), build(True)
+    assert (value_at(ours, wall) > 0.5).mean() > 0.95
+    # (beams at the scan's ends and next to the door have no flank on one side, or the door's
+    # beams as one: they keep their full length)
+    assert (value_at(ours, behind) == -1.0).mean() > 0.8
+    assert (value_at(ours, through) < 0.5).all() and (value_at(ours, through) >= 0).all()
+    assert (value_at(full, behind) == -1.0).mean() < 0.2
