@@ -38,7 +38,7 @@ def scan_to_range_data(ranges, valid, no_return, angle_min, angle_increment, min
     when it is 0), cut at the nearer of the two returns that flank them (the nearest valid
     reading on either side, in beam order) where those two lie at most ``surface_gap`` apart:
     both beams beside it met one surface, so this beam met it too and got no echo (a dark or
-    glossy patch, glass); free space beyond it would erase that surface from the map. Writes
+    glossy patch, glass); free space beyond it would mark what lies behind that surface free. Writes
     into ``hits`` / ``misses`` (capacity = beam count each) and returns (number of hits,
     number of misses, number of far misses); misses come far ones first, then no-returns,
     each in beam order.

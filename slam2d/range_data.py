@@ -9,8 +9,8 @@ dropped.
 Unlike Cartographer, a no-return beam between two returns from one surface (their end points
 at most ``SAME_SURFACE_GAP`` apart) is cut at the nearer of them: a laser gets no echo from
 dark, glossy or transparent patches of a wall as well as from open space, and a free ray
-through the wall behind such a patch erases the wall, and what lies behind it, from the
-submap (``_kernels.scan_to_range_data``).
+through such a patch marks what lies behind the wall free: the next room, whose walls are then
+weak in the submap when the robot gets there (``_kernels.scan_to_range_data``).
 """
 from __future__ import annotations
 
@@ -53,8 +53,8 @@ def range_data(scan: Scan, cfg: RangeFilterConfig) -> RangeData:
     min_range = float(max(cfg.min_range, scan.range_min))
     nh, nm, far = _kernels.scan_to_range_data(scan.ranges, scan.valid, no_ret, float(scan.angle_min),
                                               float(scan.angle_increment), min_range, float(cfg.max_range),
-                                              float(miss_len), float(off[0]), float(off[1]), float(off[2]), hits, misses,
-                                              SAME_SURFACE_GAP)
+                                              float(miss_len), float(off[0]), float(off[1]), float(off[2]),
+                                              hits, misses, SAME_SURFACE_GAP)
     return RangeData(np.array([float(off[0]), float(off[1])]), hits[:nh], misses[:nm], int(far))
 
 
