@@ -46,29 +46,27 @@ def _tool(cmd: list) -> None:
         raise SystemExit(f"benchmark: {' '.join(map(str, cmd))} failed: {r.stderr.strip()}")
 
 
-def degraded_log(args, name: str) -> Path:
-    """``degrade.py IN OUT --seed 1`` (its default odometry model) of a relations log, cached."""
-    tool = args.shared / "tools" / "degrade.py"
-    log = args.shared / "datasets" / name / f"{name}.clf.bz2"
-    d = cached(args.cache, tool, args.degrade_seed, name, log,
-               lambda tmp: _tool([tool, log, tmp / f"{name}.clf", "--seed", args.degrade_seed]))
-    return d / f"{name}.clf"
-
-
 #: ``degrade.py --beam-dropout``: the share of readings the dropped-beams copies turn into no-returns
 BEAM_DROPOUT = 0.3
 
 
-def dropout_log(args, name: str) -> Path:
-    """``degrade.py IN OUT --seed 1 --beam-dropout 0.3`` of a relations log (its default odometry
-    model, and three readings in ten replaced by the log's no-return value: dark, glossy and
-    glass surfaces that return no echo), cached."""
+def degraded_log(args, name: str, beam_dropout: float = 0.0) -> Path:
+    """``degrade.py IN OUT --seed 1`` (its default odometry model) of a relations log, cached; with
+    ``beam_dropout``, also that share of readings replaced by the log's no-return value
+    (``--beam-dropout``), in a folder of its own."""
     tool = args.shared / "tools" / "degrade.py"
     log = args.shared / "datasets" / name / f"{name}.clf.bz2"
-    d = cached(args.cache, tool, args.degrade_seed, f"{name}-dropout{round(BEAM_DROPOUT * 100)}", log,
-               lambda tmp: _tool([tool, log, tmp / f"{name}.clf", "--seed", args.degrade_seed,
-                                  "--beam-dropout", BEAM_DROPOUT]))
+    extra = ["--beam-dropout", beam_dropout] if beam_dropout else []
+    folder = f"{name}-dropout{round(beam_dropout * 100)}" if beam_dropout else name
+    d = cached(args.cache, tool, args.degrade_seed, folder, log,
+               lambda tmp: _tool([tool, log, tmp / f"{name}.clf", "--seed", args.degrade_seed, *extra]))
     return d / f"{name}.clf"
+
+
+def dropout_log(args, name: str) -> Path:
+    """The degraded copy with ``BEAM_DROPOUT`` of the readings dropped as well (dark, glossy and glass
+    surfaces that return no echo)."""
+    return degraded_log(args, name, BEAM_DROPOUT)
 
 
 def corrected_logs(datasets: Path) -> list[tuple[str, Path]]:
