@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from slam2d.eval.relations import read_relations, relations_metric
-from slam2d.geometry import between
+from slam2d.geometry import between, yaw_to_quaternion
 from slam2d.io.source import open_source
 from slam2d.io.trajectory import read_tum
 
@@ -236,3 +236,44 @@ def test_recovery_audit_scores_a_recovery_against_the_pose_it_replaced():
                          capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip().endswith("0 recovered scans: 0 nearer the ground truth than the pose they replaced, 0 farther")
+
+
+def test_dense_reference_places_each_sparse_scan_at_the_raw_run_pose_of_the_same_scan(tmp_path):
+    """A sparse log's scans are raw scans with identical ranges and new stamps; the reference gives
+    each the pose the raw log's run gave that scan, at the sparse stamp, and leaves out a scan the
+    raw log does not hold."""
+    import bz2
+
+    sys.path.insert(0, str(ROOT / "tools"))
+    import benchmark
+
+    shared = _fake_shared(tmp_path)
+    raw_log = shared / "datasets" / "tiny" / "tiny.clf.bz2"
+    with bz2.open(raw_log, "rt") as f:
+        raw_lines = [line for line in f if line.startswith("FLASER")]
+    raw = list(open_source(raw_log))
+    rng = np.random.default_rng(3)
+    poses = np.c_[rng.uniform(-5, 5, (len(raw), 2)), rng.uniform(-3, 3, len(raw))]
+    stamps = np.array([s.timestamp for s in raw])
+    with open(tmp_path / "dense.txt", "w") as f:  # the rows out of scan order: matched by stamp
+        for i in rng.permutation(len(raw)):
+            q = np.ravel(yaw_to_quaternion(poses[i, 2]))
+            f.write(f"{stamps[i]:.6f} {poses[i, 0]:.6f} {poses[i, 1]:.6f} 0 {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}\n")
+    picked = list(range(0, len(raw), 3))
+    sparse = []
+    for k, i in enumerate(picked):
+        tok = raw_lines[i].split()
+        if k == 5:  # a scan of no raw scan: one reading changed
+            tok[2] = f"{float(tok[2]) + 0.5:.3f}"
+        t = 1e9 + 0.5 * k
+        tok[-3], tok[-1] = f"{t:.6f}", f"{t:.6f}"
+        sparse.append(" ".join(tok) + "\n")
+    (tmp_path / "sparse.clf").write_text("".join(sparse))
+    n = benchmark.dense_reference(tmp_path / "sparse.clf", raw_log, tmp_path / "dense.txt", tmp_path / "ref.txt")
+    t, got, _ = read_tum(tmp_path / "ref.txt")
+    want = [k for k in range(len(picked)) if k != 5]
+    assert n == len(t) == len(want)
+    np.testing.assert_allclose(t, [1e9 + 0.5 * k for k in want])
+    expect = poses[[picked[k] for k in want]]
+    np.testing.assert_allclose(got[:, :2], expect[:, :2], atol=1e-6)
+    np.testing.assert_allclose(np.angle(np.exp(1j * (got[:, 2] - expect[:, 2]))), 0, atol=1e-6)
