@@ -15,7 +15,8 @@ Suites (issue 11), all in one run by default, `--suite` selects some:
   no-odometry  the same logs run with `slam2d run --no-odometry` (odometry is optional), relations;
   sparse     `../shared/tools/make_sparse.py OUTDIR LOG --seed 7` of every corrected log found in
              ../shared/datasets (`*.gfs.log`, `*-corrected.log*`, any depth); ATE RMSE and loop
-             precision/recall (`slam2d eval loops --ground-truth`) against the `.gt.txt` it writes;
+             precision/recall (`slam2d eval loops --ground-truth`) against the `.gt.txt` it writes,
+             and for a log made from a relations log also against slam2d's run of the raw log;
              and the ATE's median and range over seeds 7, 8 and 9 (`--sparse-spread`: the same
              scans with other odometry noise, slam2d alone);
   clinic     fr-clinic (`datasets/fr-clinic/*.clf.bz2`): wall time, peak RSS, loop closures, health;
@@ -239,10 +240,10 @@ def dense_reference(sparse_log: Path, raw_log: Path, dense_trajectory: Path, out
 
 def loops_vs_dense_run(row: dict, datasets: Path, runs: Path) -> None:
     """For a sparse log made from a relations log that this benchmark also ran whole (``runs/NAME``):
-    its loop precision against that run (``dense_reference``), in ``row["slam2d"]["loops_vs_dense_run"]``,
-    and the share of the relations that run misses by the loop tolerance. GMapping's `.gt.txt` misses
-    the relations more often than slam2d's dense runs do (``tools/reference_check.py``), so this tells
-    a wrong loop from a wrong ground truth where the scans alone cannot (``scan_check``)."""
+    its loop precision against that run (``dense_reference``), in ``row["slam2d"]["loops_vs_dense_run"]``.
+    GMapping's `.gt.txt` misses the hand-verified relations more often than slam2d's dense runs do
+    (``tools/reference_check.py``), so this tells a wrong loop from a wrong ground truth where the
+    scans alone cannot (``scan_check``). Only the ``--sparse-seed`` run is judged."""
     name = row["dataset"]
     raw, dense = datasets / name / f"{name}.clf.bz2", runs / name / "trajectory.txt"
     run_dir = runs / f"sparse-{name}"
