@@ -242,15 +242,12 @@ def test_dense_reference_places_each_sparse_scan_at_the_raw_run_pose_of_the_same
     """A sparse log's scans are raw scans with identical ranges and new stamps; the reference gives
     each the pose the raw log's run gave that scan, at the sparse stamp, and leaves out a scan the
     raw log does not hold."""
-    import bz2
-
     sys.path.insert(0, str(ROOT / "tools"))
     import benchmark
 
     shared = _fake_shared(tmp_path)
     raw_log = shared / "datasets" / "tiny" / "tiny.clf.bz2"
-    with bz2.open(raw_log, "rt") as f:
-        raw_lines = [line for line in f if line.startswith("FLASER")]
+    raw_lines = _flaser_lines(raw_log)
     raw = list(open_source(raw_log))
     rng = np.random.default_rng(3)
     poses = np.c_[rng.uniform(-5, 5, (len(raw), 2)), rng.uniform(-3, 3, len(raw))]
@@ -259,16 +256,7 @@ def test_dense_reference_places_each_sparse_scan_at_the_raw_run_pose_of_the_same
         for i in rng.permutation(len(raw)):
             q = np.ravel(yaw_to_quaternion(poses[i, 2]))
             f.write(f"{stamps[i]:.6f} {poses[i, 0]:.6f} {poses[i, 1]:.6f} 0 {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}\n")
-    picked = list(range(0, len(raw), 3))
-    sparse = []
-    for k, i in enumerate(picked):
-        tok = raw_lines[i].split()
-        if k == 5:  # a scan of no raw scan: one reading changed
-            tok[2] = f"{float(tok[2]) + 0.5:.3f}"
-        t = 1e9 + 0.5 * k
-        tok[-3], tok[-1] = f"{t:.6f}", f"{t:.6f}"
-        sparse.append(" ".join(tok) + "\n")
-    (tmp_path / "sparse.clf").write_text("".join(sparse))
+    picked = _sparse_from_raw(raw_lines, tmp_path / "sparse.clf", every=3, changed=5)
     n = benchmark.dense_reference(tmp_path / "sparse.clf", raw_log, tmp_path / "dense.txt", tmp_path / "ref.txt")
     t, got, _ = read_tum(tmp_path / "ref.txt")
     want = [k for k in range(len(picked)) if k != 5]
@@ -277,3 +265,59 @@ def test_dense_reference_places_each_sparse_scan_at_the_raw_run_pose_of_the_same
     expect = poses[[picked[k] for k in want]]
     np.testing.assert_allclose(got[:, :2], expect[:, :2], atol=1e-6)
     np.testing.assert_allclose(np.angle(np.exp(1j * (got[:, 2] - expect[:, 2]))), 0, atol=1e-6)
+
+
+def _flaser_lines(log):
+    import bz2
+
+    with bz2.open(log, "rt") as f:
+        return [line for line in f if line.startswith("FLASER")]
+
+
+def _sparse_from_raw(raw_lines, path, every, changed=None) -> list[int]:
+    """Write every ``every``-th raw FLASER line to ``path`` as make_sparse.py does (stamps from 1e9,
+    0.5 s apart); the ``changed``-th kept scan gets one reading changed. Returns the raw indices kept."""
+    picked = list(range(0, len(raw_lines), every))
+    sparse = []
+    for k, i in enumerate(picked):
+        tok = raw_lines[i].split()
+        if k == changed:  # a scan of no raw scan: one reading changed
+            tok[2] = f"{float(tok[2]) + 0.5:.3f}"
+        t = 1e9 + 0.5 * k
+        tok[-3], tok[-1] = f"{t:.6f}", f"{t:.6f}"
+        sparse.append(" ".join(tok) + "\n")
+    Path(path).write_text("".join(sparse))
+    return picked
+
+
+def test_dense_reference_tool_judges_a_sparse_run_against_both_references(tmp_path):
+    """``tools/dense_reference.py RUN GT RAW_LOG RAW_TRAJECTORY``: the reference for every sparse scan,
+    the loop precision against the ground truth and against the raw log's run; a missing file is one
+    line naming it and exit 2."""
+    shared = _fake_shared(tmp_path)
+    raw_log = shared / "datasets" / "tiny" / "tiny.clf.bz2"
+    picked = _sparse_from_raw(_flaser_lines(raw_log), tmp_path / "sparse.clf", every=2)
+    gt = [s.ground_truth for k, s in enumerate(open_source(BUNDLED)) if k % 6 == 0][:100]  # _fake_shared's scans
+    with open(tmp_path / "sparse.gt.txt", "w") as f:
+        for k, i in enumerate(picked):
+            q = np.ravel(yaw_to_quaternion(gt[i][2]))
+            f.write(f"{1e9 + 0.5 * k:.6f} {gt[i][0]:.6f} {gt[i][1]:.6f} 0 {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}\n")
+    for log, out in ((tmp_path / "sparse.clf", tmp_path / "run"), (raw_log, tmp_path / "raw_run")):
+        r = subprocess.run([sys.executable, "-m", "slam2d.cli", "run", str(log), "--out", str(out), "--no-progress"],
+                           capture_output=True, text=True, timeout=300)
+        assert r.returncode == 0, r.stderr
+    tool = [sys.executable, str(ROOT / "tools" / "dense_reference.py")]
+    args = [str(tmp_path / "run"), str(tmp_path / "sparse.gt.txt"), str(raw_log), str(tmp_path / "raw_run" / "trajectory.txt")]
+    r = subprocess.run(tool + args, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    assert lines[0].startswith(f"reference: {tmp_path / 'run' / 'dense_reference.txt'} ({len(picked)} scans")
+    t, _, _ = read_tum(tmp_path / "run" / "dense_reference.txt")
+    assert len(t) == len(picked)
+    n = sum(1 for c in map(json.loads, open(tmp_path / "run" / "constraints.jsonl")) if c.get("in_final_graph"))
+    assert lines[1].startswith("vs ground truth: ") and f" of {n} in the final graph" in lines[1]
+    assert lines[2].startswith("vs raw log's run: ") and f" of {n} in the final graph" in lines[2]
+    args[0] = str(tmp_path / "no-such-run")
+    r = subprocess.run(tool + args, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2 and r.stdout == ""
+    assert r.stderr.strip() == f"dense_reference: {tmp_path / 'no-such-run' / 'summary.json'}: no such file"
