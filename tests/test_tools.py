@@ -145,6 +145,10 @@ def test_benchmark_runs_every_suite_on_tiny_logs(tmp_path):
     # the same scans with the odometry of two more seeds (--sparse-spread, default 8,9): slam2d alone
     by_seed = sp["ate_rmse_by_seed"]
     assert list(by_seed) == ["7", "8", "9"] and by_seed["7"] == sp["ate"]["trans_m"]["rmse"]
+    # and their loops against the ground truth, the other seeds' beside the first's in the table
+    loops = sp["loops_vs_ground_truth_by_seed"]
+    assert list(loops) == ["7", "8", "9"] and loops["7"] == sp["loops_vs_ground_truth"]["final_graph"]
+    assert "; seeds 8, 9: " in md
     assert all((out / "runs" / f"sparse-corner-seed{s}" / "trajectory.txt").exists() for s in (8, 9))
     assert not (out / "runs" / "sparse-corner-seed8_karto.txt").exists()
     v = sorted(by_seed.values())
@@ -321,3 +325,22 @@ def test_dense_reference_tool_judges_a_sparse_run_against_both_references(tmp_pa
     r = subprocess.run(tool + args, capture_output=True, text=True, timeout=300)
     assert r.returncode == 2 and r.stdout == ""
     assert r.stderr.strip() == f"dense_reference: {tmp_path / 'no-such-run' / 'summary.json'}: no such file"
+    # the benchmark's wiring: each seed's run judged against the raw log's run (``runs/NAME``)
+    import shutil
+
+    sys.path.insert(0, str(ROOT / "tools"))
+    import benchmark
+
+    runs = tmp_path / "runs"
+    shutil.copytree(tmp_path / "raw_run", runs / "tiny")
+    for label in ("sparse-tiny", "sparse-tiny-seed8"):
+        shutil.copytree(tmp_path / "run", runs / label)
+    (runs / "sparse-tiny-seed9").mkdir()  # a seed whose run left no constraints: left out
+    row = {"dataset": "tiny", "slam2d": {},
+           "seed_runs": {s: {"run": f"sparse-tiny{'' if s == '7' else '-seed' + s}", "log": str(tmp_path / "sparse.clf")}
+                         for s in ("7", "8", "9")}}
+    benchmark.loops_vs_dense_run(row, shared / "datasets", runs)
+    by_seed = row["slam2d"]["loops_vs_dense_run_by_seed"]
+    assert list(by_seed) == ["7", "8"] and by_seed["7"] == by_seed["8"] == row["slam2d"]["loops_vs_dense_run"]["final_graph"]
+    assert by_seed["7"]["true"] + by_seed["7"]["false"] == n
+    assert read_tum(runs / "sparse-tiny-seed8" / "dense_reference.txt")[0].tolist() == t.tolist()

@@ -98,17 +98,17 @@ def degraded_table(rows, kind: str = "degraded") -> str:
 
 def sparse_table(rows) -> str:
     target = TARGETS["sparse_ate_rmse_m"]
-    lines = [f"| dataset (sparse) | system | scans | wall s | peak RSS MB | ATE RMSE m | target ≤ {target} m | met | ATE RMSE over the seeds: median (min–max) m; seeds whose health is not OK | loops accepted / final / searched | loop precision vs ground truth, final graph (all accepted) | its misses, by the raw scans: loop right / truth right / undecided | loop precision vs slam2d's run of the raw log, final graph | recall (revisit episodes closed) | free-space violation, all scans / revisits: slam2d; ground truth | health |",
+    lines = [f"| dataset (sparse) | system | scans | wall s | peak RSS MB | ATE RMSE m | target ≤ {target} m | met | ATE RMSE over the seeds: median (min–max) m; seeds whose health is not OK | loops accepted / final / searched | loop precision vs ground truth, final graph (all accepted; the other seeds' final graphs) | its misses, by the raw scans: loop right / truth right / undecided | loop precision vs slam2d's run of the raw log, final graph (the other seeds') | recall (revisit episodes closed) | free-space violation, all scans / revisits: slam2d; ground truth | health |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
         n, s = row["dataset"], row["slam2d"]
         d = s.get("loops_vs_dense_run")
-        dense = _pct(d["final_graph"]) if d else "—"
+        dense = _pct(d["final_graph"]) + _other_seeds(s.get("loops_vs_dense_run_by_seed")) if d else "—"
         rmse = s["ate"]["trans_m"]["rmse"]
         g = s.get("loops_vs_ground_truth")
         prec = rec = by_scans = "—"
         if g:
-            prec = f"{_pct(g['final_graph'])} ({_pct(g['accepted'])})"
+            prec = f"{_pct(g['final_graph'])} ({_pct(g['accepted'])}){_other_seeds(s.get('loops_vs_ground_truth_by_seed'))}"
             b = g["final_graph"].get("false_by_scans")
             if b is not None:
                 by_scans = f"{b['constraint']} / {b['ground_truth']} / {b['undecided']}"
@@ -124,6 +124,15 @@ def sparse_table(rows) -> str:
             lines.append(f"| {n} | Karto peer (sequential) | {s['scans']} | {k['wall_s']:.1f} | {k['peak_rss_mb']:.0f} | "
                          f"{kr:.3f} | ≤ {target} | {_met(kr <= target)} | — | — | — | — | — | — | — | |")
     return "\n".join(lines)
+
+
+def _other_seeds(by_seed: dict | None) -> str:
+    """'; seeds 8, 9: 98.0 % of 593, 98.4 % of 575': the final graph's precision of the runs after
+    the first (the ``--sparse-spread`` seeds), or nothing."""
+    rest = [(k, v) for k, v in list((by_seed or {}).items())[1:] if v is not None]
+    if not rest:
+        return ""
+    return f"; seeds {', '.join(k for k, _ in rest)}: {', '.join(_pct(v) for _, v in rest)}"
 
 
 def _consistency(c: dict | None) -> str:
