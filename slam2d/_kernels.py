@@ -59,8 +59,8 @@ def scan_to_range_data(ranges, valid, no_return, angle_min, angle_increment, min
             _put(misses, nm, max_range, angle_min + angle_increment * i, ox, oy, c0, s0)
             nm += 1
     far = nm
-    ends = np.empty(n)
     if miss_length > 0.0:
+        ends = np.empty(n)  # each no-return ray's length
         # the nearest valid reading before each beam (its index, or -1): a no-return's left flank
         left = np.empty(n, dtype=np.int64)
         last = -1
