@@ -194,6 +194,10 @@ class LocalSlam:
         self.num_forced = 0
         self.num_degenerate = 0
         self.num_weak = 0
+        self.num_still = 0
+        self._still_ref = None  # the last scan matched and trusted (``_still``): odometry, pose, match, score
+        self.still_matcher = RealTimeCorrelativeScanMatcher(cfg.grid.resolution, 0.0, 0, rt.translation_delta_cost_weight,
+                                                            rt.rotation_delta_cost_weight)
         self._vain_search_at = None  # where a recovery for a low-scoring peak found nothing (``_searched_in_vain``)
         self.num_recovery_skipped = 0
         self.untrusted_in_a_row = 0
@@ -330,10 +334,17 @@ class LocalSlam:
         kept_match = None
         match = None
         quality = "unmatched"
+        still_ref = False  # this scan becomes the reference of ``_still``
         recovered = None  # the pose a recovered match replaced
         submap = self.submaps.matching_submap
-        if submap is not None and len(points) >= 3:
-            grid = submap.match_grid()
+        grid = None if submap is None else submap.match_grid()
+        ref = self._still(odom, grid, points)
+        if ref is not None:
+            # the robot stood still since a scan that was matched and trusted: that scan's pose
+            pose, score, match = ref[1], ref[3], ref[2]
+            quality = "trusted"
+            self.num_still += 1
+        elif submap is not None and len(points) >= 3:
             t1 = time.perf_counter()
             rt = self.cfg.real_time_matcher
             lin, ang = self.windows(self.extrapolator.motion(predicted))
@@ -387,6 +398,7 @@ class LocalSlam:
                     self._vain_search_at = None
                     quality = "trusted"
                     self.num_matched += 1
+                    still_ref = True
                     self.recent_scores.append(score)
                     if recovered is None:  # a recovery is the event the error model does not cover
                         self.recent_errors.append(math.hypot(m.pose[0] - predicted[0], m.pose[1] - predicted[1]))
@@ -415,6 +427,10 @@ class LocalSlam:
                 self.num_untrusted += 1
                 self.untrusted_in_a_row += 1
         pose = np.array([pose[0], pose[1], math.remainder(pose[2], 2 * math.pi)])
+        if still_ref:
+            self._still_ref = (odom, pose, match, score)
+        elif ref is None:
+            self._still_ref = None
         self._doubt += self._step_doubt(quality, pose, recovered, submap is not None)
         self.extrapolator.add(scan.timestamp, pose, odom, measured=quality in ("trusted", "unmatched"))
         inserted = quality != "untrusted" and not self.filter.is_similar(scan.timestamp, pose, odom)
@@ -442,6 +458,23 @@ class LocalSlam:
                               quality=quality, doubt=doubt,
                               replaced=None if recovered is None else np.array(recovered, dtype=float),
                               fresh_start=inserted and quality == "forced")
+
+    def _still(self, odom, grid, points):
+        """The reference scan (``_still_ref``: the last scan matched and trusted) when the robot has
+        not moved since it: the wheel odometry reads exactly what it read there, and on the
+        matcher's own lattice one step around the reference's pose (a cell each way, an angular
+        step each way) the scan scores best at that pose itself. Such a scan gets the reference's
+        pose without a search and without refinement, as Karto and slam_toolbox skip scans until
+        the robot moved. The lattice check is what tells a robot standing still from odometry
+        frozen while it drives (a stalled odometry stream): moved by half a cell or more since the
+        reference, the scan scores better a step away and is matched as usual; a range-by-range
+        comparison would not see a drive along a corridor, whose side walls return the same
+        ranges. None otherwise."""
+        ref = self._still_ref
+        if ref is None or odom is None or grid is None or len(points) < 3 or not np.array_equal(odom, ref[0]):
+            return None
+        m = self.still_matcher._match(grid, ref[1], points, 0.0, grid.resolution, 1e-9)
+        return None if m is None or m.on_edge else ref
 
     def _searched_in_vain(self, predicted) -> bool:
         """Whether a low-scoring peak inside the window skips the recovery search: one made for such a
@@ -487,7 +520,7 @@ class LocalSlam:
                                "recovery_searches": self.num_recovery_searches, "recovered": self.num_recovered,
                                "recovery_skipped": self.num_recovery_skipped,
                                "untrusted": self.num_untrusted, "inserted_untrusted": self.num_forced, "weak": self.num_weak,
-                               "degenerate": self.num_degenerate,
+                               "degenerate": self.num_degenerate, "still": self.num_still,
                                "submaps": self.submaps.count, "finished_submaps": len(self.finished_submaps),
                                "score_mean": round(float(s.mean()), 4), "score_p5": round(float(np.percentile(s, 5)), 4)}}
 

@@ -627,3 +627,52 @@ def test_losing_track_starts_new_submaps_instead_of_overlaying_the_old():
     # no other step finished a submap early: without the jump, the same scans give no forced insertion
     plain = LocalSlam(config_from_dict({}), loop_closure=True)
     assert not any(plain.add_scan(s).quality == "forced" for s in _bundled_scans(320))
+
+
+def _stood_still(scans, k, n, noise, seed=0):
+    """``scans`` with ``n`` copies of scan k inserted after it: the robot stands there (the same
+    odometry, the ground truth unchanged) and the laser reads the same ranges up to ``noise`` m."""
+    import dataclasses
+
+    rng = np.random.default_rng(seed)
+    dt = scans[k + 1].timestamp - scans[k].timestamp
+    still = []
+    for i in range(1, n + 1):
+        r = scans[k].ranges + rng.normal(0.0, noise, scans[k].ranges.shape).astype(np.float32)
+        still.append(dataclasses.replace(scans[k], timestamp=scans[k].timestamp + i * dt / (n + 1), ranges=r))
+    out = scans[: k + 1] + still + scans[k + 1:]
+    for i, s in enumerate(out):
+        s.index = i
+    return out
+
+
+def test_a_robot_standing_still_keeps_its_last_matched_pose_without_a_search():
+    """The odometry reads the same and the ranges agree to sensor noise: the scans take the pose of
+    the last matched scan exactly, and tracking goes on as well as without them."""
+    k, n = 60, 25
+    base = _bundled_scans(120)
+    tracker, poses = _run(_stood_still(_bundled_scans(120), k, n, noise=0.01))
+    assert tracker.num_still == n
+    for i in range(k + 1, k + n + 1):
+        np.testing.assert_array_equal(poses[i], poses[k])
+    _, ref = _run(base)
+    for j in (k + 1, len(base) - 1):  # the scans after the stop, against the run that never stopped
+        dt, dr = _rel_error(poses[0], poses[j + n], ref[0], ref[j])
+        assert dt < 0.02 and dr < 0.2, (j, dt, dr)
+
+
+def test_odometry_frozen_while_the_robot_moves_does_not_freeze_the_pose():
+    """From scan K on the odometry stream stops (its last reading repeats) while the robot drives on:
+    scan scores better a lattice step away from the last matched pose than at it, so each is
+    matched, and the trajectory follows the ground truth. The simulated world is mostly corridor:
+    most beams hit side walls and return the same range as the robot drives along them."""
+    scans = _bundled_scans(160)
+    k = 100
+    for s in scans[k:]:
+        s.odom_pose = scans[k - 1].odom_pose.copy()
+    tracker, poses = _run(scans)
+    assert tracker.num_still == 0
+    for j in (k + 5, k + 30, len(scans) - 1):
+        dt, dr = _rel_error(poses[k - 1], poses[j], scans[k - 1].ground_truth, scans[j].ground_truth)
+        assert dt < 0.1 and dr < 1.0, (j, dt, dr)
+
