@@ -466,10 +466,10 @@ class LocalSlam:
         step each way) the scan scores best at that pose itself. Such a scan gets the reference's
         pose without a search and without refinement, as Karto and slam_toolbox skip scans until
         the robot moved. The lattice check is what tells a robot standing still from odometry
-        frozen while it drives (a stalled odometry stream): moved by half a cell or more since the
-        reference, the scan scores better a step away and is matched as usual; a range-by-range
-        comparison would not see a drive along a corridor, whose side walls return the same
-        ranges. None otherwise."""
+        frozen while it drives (a stalled odometry stream): once the robot has moved, the scan
+        scores better a step away and is matched as usual (tests/test_frontend.py freezes the
+        odometry of a drive); a range-by-range comparison would not see a drive along a corridor,
+        whose side walls return the same ranges. None otherwise."""
         ref = self._still_ref
         if ref is None or odom is None or grid is None or len(points) < 3 or not np.array_equal(odom, ref[0]):
             return None

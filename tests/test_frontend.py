@@ -663,7 +663,7 @@ def test_a_robot_standing_still_keeps_its_last_matched_pose_without_a_search():
 
 def test_odometry_frozen_while_the_robot_moves_does_not_freeze_the_pose():
     """From scan K on the odometry stream stops (its last reading repeats) while the robot drives on:
-    scan scores better a lattice step away from the last matched pose than at it, so each is
+    each scan scores better a lattice step away from the last matched pose than at it, so each is
     matched, and the trajectory follows the ground truth. The simulated world is mostly corridor:
     most beams hit side walls and return the same range as the robot drives along them."""
     scans = _bundled_scans(160)
@@ -675,4 +675,3 @@ def test_odometry_frozen_while_the_robot_moves_does_not_freeze_the_pose():
     for j in (k + 5, k + 30, len(scans) - 1):
         dt, dr = _rel_error(poses[k - 1], poses[j], scans[k - 1].ground_truth, scans[j].ground_truth)
         assert dt < 0.1 and dr < 1.0, (j, dt, dr)
-
