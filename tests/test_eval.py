@@ -110,6 +110,22 @@ def test_ate_recovers_a_rigid_transform_exactly():
     assert 0.03 < ate(noisy, ref)["trans_m"]["rmse"] < 0.1
     r = rpe(est, ref, (1.0,))
     assert r["1m"]["trans_m"]["max"] < 1e-9
+    assert m["scale"] == pytest.approx(1.0, abs=1e-12) and m["sim2_trans_m"]["rmse"] < 1e-9
+
+
+def test_ate_reports_the_scale_of_a_uniformly_shrunk_trajectory():
+    """A trajectory shrunk by 1 % as a whole (every step 1 % short) and moved: the SE(2) ATE sees
+    the shrink as error, the similarity alignment recovers the factor and leaves none."""
+    rng = np.random.default_rng(2)
+    ref = np.cumsum(rng.normal(0, 0.5, (400, 3)), axis=0)
+    est = compose(np.array([-4.0, 1.5, -0.4]), np.column_stack([0.99 * ref[:, :2], ref[:, 2]]))
+    m = ate(est, ref)
+    assert m["scale"] == pytest.approx(1 / 0.99, rel=1e-9)
+    assert m["sim2_trans_m"]["rmse"] < 1e-9
+    spread = np.sqrt(((ref[:, :2] - ref[:, :2].mean(axis=0)) ** 2).sum(axis=1).mean())
+    assert m["trans_m"]["rmse"] == pytest.approx(0.01 * spread, rel=0.05)
+    # headings are untouched by the scale
+    np.testing.assert_allclose(align(est, ref, with_scale=True)[:, 2], align(est, ref)[:, 2])
 
 
 def _synthetic_run(tmp_path):

@@ -202,12 +202,12 @@ def test_benchmark_tables_show_health_and_targets():
     assert all("5 / 4 / 9" in line for line in lines)
     sparse = row(5.0, 300.0, "BROKEN")
     sparse["dataset"] = "orebro"
-    sparse["slam2d"]["ate"] = {"trans_m": {"rmse": 0.12}}
+    sparse["slam2d"]["ate"] = {"trans_m": {"rmse": 0.12}, "scale": 1.009, "sim2_trans_m": {"rmse": 0.0743}}
     sparse["slam2d"]["loops_vs_ground_truth"] = {
         "final_graph": {"true": 3, "false": 1, "unknown": 0, "precision": 0.75},
         "accepted": {"true": 3, "false": 2, "unknown": 0, "precision": 0.6}, "recall": {"episodes": 4, "closed": 2}}
     line = benchmark.sparse_table([sparse]).splitlines()[2]
-    assert "| 0.120 | ≤ 0.15 | yes |" in line and "75.0 % of 4 (60.0 % of 5)" in line and "2 of 4" in line
+    assert "| 0.120 | ≤ 0.15 | yes | 1.0090; 0.074 |" in line and "75.0 % of 4 (60.0 % of 5)" in line and "2 of 4" in line
     assert line.rstrip().endswith("| BROKEN |")
 
 

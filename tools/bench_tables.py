@@ -98,8 +98,8 @@ def degraded_table(rows, kind: str = "degraded") -> str:
 
 def sparse_table(rows) -> str:
     target = TARGETS["sparse_ate_rmse_m"]
-    lines = [f"| dataset (sparse) | system | scans | wall s | peak RSS MB | ATE RMSE m | target ≤ {target} m | met | ATE RMSE over the seeds: median (min–max) m; seeds whose health is not OK | loops accepted / final / searched | loop precision vs ground truth, final graph (all accepted; the other seeds' final graphs) | its misses, by the raw scans: loop right / truth right / undecided | loop precision vs slam2d's run of the raw log, final graph (the other seeds') | recall (revisit episodes closed) | free-space violation, all scans / revisits: slam2d; ground truth | health |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [f"| dataset (sparse) | system | scans | wall s | peak RSS MB | ATE RMSE m | target ≤ {target} m | met | scale (Sim(2)); ATE RMSE after it m | ATE RMSE over the seeds: median (min–max) m; seeds whose health is not OK | loops accepted / final / searched | loop precision vs ground truth, final graph (all accepted; the other seeds' final graphs) | its misses, by the raw scans: loop right / truth right / undecided | loop precision vs slam2d's run of the raw log, final graph (the other seeds') | recall (revisit episodes closed) | free-space violation, all scans / revisits: slam2d; ground truth | health |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
         n, s = row["dataset"], row["slam2d"]
         d = s.get("loops_vs_dense_run")
@@ -115,15 +115,23 @@ def sparse_table(rows) -> str:
             rc = g["recall"]
             rec = f"{rc['closed']} of {rc['episodes']}"
         lines.append(f"| {n} | slam2d ({s['mode']}) | {s['scans']} | {s['wall_s']:.1f} | {s['peak_rss_mb']:.0f} | "
-                     f"{rmse:.3f} | ≤ {target} | {_met(rmse <= target)} | {_spread(s.get('ate_rmse_by_seed'), s.get('health_by_seed'))} | "
+                     f"{rmse:.3f} | ≤ {target} | {_met(rmse <= target)} | {_scale(s['ate'])} | {_spread(s.get('ate_rmse_by_seed'), s.get('health_by_seed'))} | "
                      f"{loops_txt(s)} | {prec} | {by_scans} | {dense} | {rec} | {_consistency(s.get('consistency_vs_ground_truth'))} | "
                      f"{health_txt(s)} |")
         k = row.get("karto", {})
         if "ate" in k:
             kr = k["ate"]["trans_m"]["rmse"]
             lines.append(f"| {n} | Karto peer (sequential) | {s['scans']} | {k['wall_s']:.1f} | {k['peak_rss_mb']:.0f} | "
-                         f"{kr:.3f} | ≤ {target} | {_met(kr <= target)} | — | — | — | — | — | — | — | |")
+                         f"{kr:.3f} | ≤ {target} | {_met(kr <= target)} | {_scale(k['ate'])} | — | — | — | — | — | — | — | |")
     return "\n".join(lines)
+
+
+def _scale(a: dict) -> str:
+    """'1.0090; 0.743': the similarity alignment's scale (above 1: the run's map is too small) and
+    the ATE RMSE left after it (``slam2d.eval.ate``)."""
+    if "scale" not in a:
+        return "—"
+    return f"{a['scale']:.4f}; {a['sim2_trans_m']['rmse']:.3f}"
 
 
 def _other_seeds(by_seed: dict | None) -> str:

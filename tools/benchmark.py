@@ -569,7 +569,8 @@ def main(argv=None) -> int:
         md += ["## Sparse logs", "",
                f"`make_sparse.py OUTDIR LOG --seed {args.sparse_seed}` of every corrected log in `../shared/datasets` "
                "(scans ~1 m apart, noisy synthetic odometry). ATE RMSE after SE(2) alignment against the `.gt.txt` it "
-               "writes; loop precision is `slam2d eval loops --ground-truth` (0.3 m / 2°) over the constraints in the "
+               "writes, and the scale of the best similarity alignment (above 1: the run's map is too small as a whole) "
+               "with the ATE RMSE left after it; loop precision is `slam2d eval loops --ground-truth` (0.3 m / 2°) over the constraints in the "
                "final graph (in brackets: over all accepted ones), recall over the ground truth's revisit episodes. The "
                "ground truth is GMapping's solution and has errors of its own: each constraint it calls false is put "
                "to the raw scans (`slam2d/eval/scan_check.py`: the share of the scan's hits within 2 cells of the hits "

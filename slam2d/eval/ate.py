@@ -1,5 +1,11 @@
-"""Absolute trajectory error after SE(2) Umeyama alignment (Umeyama 1991, without scale), and
-relative pose error over fixed travelled distances (as in evo's RPE with ``--delta_unit m``)."""
+"""Absolute trajectory error after SE(2) Umeyama alignment (Umeyama 1991), and
+relative pose error over fixed travelled distances (as in evo's RPE with ``--delta_unit m``).
+
+The ATE also reports the scale of the best similarity alignment (Umeyama's Sim(2) solution, as
+evo's ``--correct_scale`` finds it) and the error left after it: a map shrunk or stretched as a
+whole (scan matching that falls short of every step along a corridor, a wheel radius taken
+wrong) shows as a scale away from 1, and the second figure says how much of the ATE that
+explains. The SE(2) figure stays the one reported: a SLAM map has a scale of its own to get right."""
 from __future__ import annotations
 
 import numpy as np
@@ -7,21 +13,26 @@ import numpy as np
 from slam2d.geometry import between, wrap
 
 
-def umeyama_se2(est_xy: np.ndarray, ref_xy: np.ndarray):
-    """Rotation angle and translation that map est onto ref in the least-squares sense."""
+def umeyama(est_xy: np.ndarray, ref_xy: np.ndarray, with_scale: bool = False):
+    """(rotation angle, translation, scale) that map est onto ref (``ref ≈ scale · R est + t``) in
+    the least-squares sense (Umeyama 1991); the scale is 1 unless ``with_scale``."""
     mu_e, mu_r = est_xy.mean(axis=0), ref_xy.mean(axis=0)
-    h = (est_xy - mu_e).T @ (ref_xy - mu_r)
-    u, _, vt = np.linalg.svd(h)
+    e = est_xy - mu_e
+    h = e.T @ (ref_xy - mu_r)
+    u, sv, vt = np.linalg.svd(h)
     d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
     r = vt.T @ np.diag([1.0, d]) @ u.T
-    t = mu_r - r @ mu_e
-    return float(np.arctan2(r[1, 0], r[0, 0])), t
+    spread = float((e ** 2).sum())
+    scale = float((sv[0] + d * sv[1]) / spread) if with_scale and spread > 0.0 else 1.0
+    t = mu_r - scale * r @ mu_e
+    return float(np.arctan2(r[1, 0], r[0, 0])), t, scale
 
 
-def align(est: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    ang, t = umeyama_se2(est[:, :2], ref[:, :2])
+def align(est: np.ndarray, ref: np.ndarray, with_scale: bool = False) -> np.ndarray:
+    """``est`` moved (and, ``with_scale``, scaled) onto ``ref`` by ``umeyama``."""
+    ang, t, scale = umeyama(est[:, :2], ref[:, :2], with_scale)
     c, s = np.cos(ang), np.sin(ang)
-    xy = est[:, :2] @ np.array([[c, s], [-s, c]]) + t
+    xy = scale * est[:, :2] @ np.array([[c, s], [-s, c]]) + t
     return np.column_stack([xy, wrap(est[:, 2] + ang)])
 
 
@@ -31,10 +42,16 @@ def _stats(v: np.ndarray) -> dict:
 
 
 def ate(est: np.ndarray, ref: np.ndarray) -> dict:
+    """Translation and rotation error after SE(2) alignment; ``scale``: the factor the similarity
+    alignment multiplies ``est`` by (above 1: ``est`` is too small), ``sim2_trans_m``: the
+    translation error left after that alignment (module docstring)."""
     aligned = align(est, ref)
     e = np.hypot(*(aligned[:, :2] - ref[:, :2]).T)
     rot = np.degrees(np.abs(wrap(aligned[:, 2] - ref[:, 2])))
-    return {"trans_m": _stats(e), "rot_deg": _stats(rot), "pairs": int(len(e))}
+    _, _, scale = umeyama(est[:, :2], ref[:, :2], with_scale=True)
+    e_sim = np.hypot(*(align(est, ref, with_scale=True)[:, :2] - ref[:, :2]).T)
+    return {"trans_m": _stats(e), "rot_deg": _stats(rot), "pairs": int(len(e)), "scale": scale,
+            "sim2_trans_m": _stats(e_sim)}
 
 
 def rpe(est: np.ndarray, ref: np.ndarray, distances=(1.0, 5.0, 10.0)) -> dict:

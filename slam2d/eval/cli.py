@@ -28,7 +28,7 @@ def add_eval_parser(sub):
     r.add_argument("--tolerance", type=float, default=1e-4, help="timestamp match tolerance [s] (default 1e-4)")
     r.add_argument("--json", action="store_true")
 
-    a = es.add_parser("ate", help="absolute trajectory error (SE(2) Umeyama alignment) and RPE")
+    a = es.add_parser("ate", help="absolute trajectory error (SE(2) Umeyama alignment; also the scale of the best similarity alignment and the error left after it) and RPE")
     a.add_argument("trajectory")
     a.add_argument("reference", help="TUM file, MCAP with /ground_truth, or CARMEN corrected log (*.gfs.log, *-corrected.log*)")
     a.add_argument("--run-input", default=None, help="the log the run read (default: 'input' in summary.json beside the trajectory)")
