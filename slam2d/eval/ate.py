@@ -30,7 +30,10 @@ def umeyama(est_xy: np.ndarray, ref_xy: np.ndarray, with_scale: bool = False):
 
 def align(est: np.ndarray, ref: np.ndarray, with_scale: bool = False) -> np.ndarray:
     """``est`` moved (and, ``with_scale``, scaled) onto ``ref`` by ``umeyama``."""
-    ang, t, scale = umeyama(est[:, :2], ref[:, :2], with_scale)
+    return _moved(est, *umeyama(est[:, :2], ref[:, :2], with_scale))
+
+
+def _moved(est: np.ndarray, ang: float, t: np.ndarray, scale: float) -> np.ndarray:
     c, s = np.cos(ang), np.sin(ang)
     xy = scale * est[:, :2] @ np.array([[c, s], [-s, c]]) + t
     return np.column_stack([xy, wrap(est[:, 2] + ang)])
@@ -48,8 +51,9 @@ def ate(est: np.ndarray, ref: np.ndarray) -> dict:
     aligned = align(est, ref)
     e = np.hypot(*(aligned[:, :2] - ref[:, :2]).T)
     rot = np.degrees(np.abs(wrap(aligned[:, 2] - ref[:, 2])))
-    _, _, scale = umeyama(est[:, :2], ref[:, :2], with_scale=True)
-    e_sim = np.hypot(*(align(est, ref, with_scale=True)[:, :2] - ref[:, :2]).T)
+    sim = umeyama(est[:, :2], ref[:, :2], with_scale=True)
+    scale = sim[2]
+    e_sim = np.hypot(*(_moved(est, *sim)[:, :2] - ref[:, :2]).T)
     return {"trans_m": _stats(e), "rot_deg": _stats(rot), "pairs": int(len(e)), "scale": scale,
             "sim2_trans_m": _stats(e_sim)}
 
