@@ -422,3 +422,43 @@ def test_a_loop_ties_a_fresh_start_when_it_spans_it():
     assert gs.untied_fresh_starts() == [300]
     gs.graph = SimpleNamespace(loops=[])
     assert gs.untied_fresh_starts() == [100, 200, 300]
+
+
+def test_auto_scores_weakly_observed_submaps_on_their_likelihood_field():
+    """``loop_closure.score_grid: auto``: a finished submap whose own nodes score low enough on its
+    probabilities that ``min_relative_score`` lowers its threshold is scored on its likelihood field,
+    every other on its probabilities. The bundled log inserted every 1.5 m gives both kinds; the
+    rule holds for each submap, the summary counts the field's, submaps scored on it hold loops of
+    the final graph, and every one of them agrees with the simulator's ground truth (0.3 m / 2°)."""
+    from slam2d.backend.global_slam import min_score_for
+    from slam2d.backend.loop_closure import probability_self_score
+    from slam2d.eval.loops import agrees
+
+    cfg = SlamConfig()
+    cfg.loop_closure.background = False
+    cfg.motion_filter.max_distance = 1.5
+    lc = cfg.loop_closure
+    assert lc.score_grid == "auto"
+    scans = list(McapLog(BUNDLED))
+    slam = Slam(cfg)
+    gs = slam.global_slam
+    seen = []
+    add = gs.add_finished_submap
+
+    def add_and_check(sub):
+        own = [(gs.nodes[j]["points"], gs.nodes[j]["local"]) for j in sub.node_indices if j in gs.nodes]
+        score = probability_self_score(sub, own)  # before the grid is packed, as global SLAM reads it
+        add(sub)
+        seen.append((min_score_for(lc, score) < lc.min_score, gs.matchers[sub.index].scores_field))
+
+    gs.add_finished_submap = add_and_check
+    result = slam.run(scans)
+    assert all(weak == field for weak, field in seen), seen
+    fields = sum(field for _, field in seen)
+    assert 0 < fields < len(seen)  # both kinds
+    assert result.summary["loop_closure"]["submaps_scored_on_field"] == fields
+    gt = np.array([s.ground_truth for s in scans])
+    final = [r for r in gs.records if r["in_final_graph"]]
+    assert final and all(agrees(gt, r, 0.3, 2.0) for r in final)
+    on_field = {k for k, m in gs.matchers.items() if m.scores_field}
+    assert any(r["submap"] in on_field for r in final)  # the field's matches close loops too

@@ -27,19 +27,26 @@ def scan_points(segs, pose, max_range=10.0):
     return np.stack([r[ok] * np.cos(ANGLES[ok]), r[ok] * np.sin(ANGLES[ok])], axis=1)
 
 
-def submap(segs, poses):
+def submap(segs, poses, beam_step=1):
+    """A submap of scans from ``poses`` (every ``beam_step``-th beam), frozen as a finished one is."""
     g = ProbabilityGrid(0.05)
     for p in poses:
-        pts = scan_points(segs, p)
+        pts = scan_points(segs, p)[::beam_step]
         g.insert(p[:2], compose(p, np.c_[pts, np.zeros(len(pts))])[:, :2])
+    b = g.known_bounds()
+    g.freeze(*b)
     return SimpleNamespace(grid=g, local_pose=np.zeros(3), index=0, node_indices=[])
 
 
-def test_refined_pose_is_re_scored():
+SCORE_GRIDS = pytest.mark.parametrize("field_sigma", [None, 0.1], ids=["probability", "likelihood_field"])
+
+
+@SCORE_GRIDS
+def test_refined_pose_is_re_scored(field_sigma):
     """A match whose refined pose no longer scores min_score is rejected, with the reason."""
     segs = floor_plan()
     center = np.array([6.0, 1.25, 0.0])
-    m = SubmapMatcher(submap(segs, [center + [dx, 0.0, 0.0] for dx in np.linspace(-1, 1, 9)]), 4)
+    m = SubmapMatcher(submap(segs, [center + [dx, 0.0, 0.0] for dx in np.linspace(-1, 1, 9)]), 4, field_sigma=field_sigma)
     pts = scan_points(segs, center)
     good = m.verify(LoopMatch(center.copy(), center.copy(), 0.7, 0.0), pts, 0.55, 0.0, (0.3, 0.035), (0.2, 0.0175), 0.004)
     assert good.reason is None and good.rescore > 0.55
@@ -48,27 +55,31 @@ def test_refined_pose_is_re_scored():
     assert bad.rescore < 0.55 and bad.reason.startswith("refined pose scores")
 
 
-def test_a_refined_pose_that_is_not_the_peak_is_rejected():
+@SCORE_GRIDS
+def test_a_refined_pose_that_is_not_the_peak_is_rejected(field_sigma):
     """The margin is measured from the best pose of the verification window; a constraint whose own
     (refined) pose is not that peak, with a better pose beyond the exclusion zone, is rejected, even
     when it scores enough and the margin alone would pass."""
     segs = floor_plan()
     center = np.array([6.0, 1.25, 0.0])
-    m = SubmapMatcher(submap(segs, [center + [dx, 0.0, 0.0] for dx in np.linspace(-1, 1, 9)]), 4)
+    m = SubmapMatcher(submap(segs, [center + [dx, 0.0, 0.0] for dx in np.linspace(-1, 1, 9)]), 4, field_sigma=field_sigma)
     pts = scan_points(segs, center)
-    args = (pts, 0.3, 0.02, (0.6, 0.035), (0.2, 0.0175), 0.004)
+    # a threshold the pose 0.3 m off still reaches (the field falls off faster than the probabilities)
+    min_score = 0.3 if field_sigma is None else 0.15
+    args = (pts, min_score, 0.02, (0.6, 0.035), (0.2, 0.0175), 0.004)
     good = m.verify(LoopMatch(center.copy(), center.copy(), 0.7, 0.0), *args)
     assert good.reason is None and good.margin >= 0.02
     off = center + [0.0, 0.3, 0.0]  # the true pose lies 0.3 m away, inside the window, outside the exclusion
     bad = m.verify(LoopMatch(off, off, 0.7, 0.0), *args)
-    assert bad.rescore >= 0.3 and bad.margin >= 0.02  # re-score and margin (the peak's) would both pass
+    assert bad.rescore >= min_score and bad.margin >= 0.02  # re-score and margin (the peak's) would both pass
     assert bad.reason.startswith("ambiguous: a pose 0.30 m"), bad.reason
 
 
-def test_ambiguous_match_in_a_symmetric_world_is_rejected():
+@SCORE_GRIDS
+def test_ambiguous_match_in_a_symmetric_world_is_rejected(field_sigma):
     """Two long parallel walls, no ends in range: every slide along them scores the same."""
     segs = np.array([[-30.0, 1.0, 30.0, 1.0], [-30.0, -1.0, 30.0, -1.0]])
-    m = SubmapMatcher(submap(segs, [np.array([x, 0.0, 0.3]) for x in np.linspace(-3, 3, 13)]), 4)
+    m = SubmapMatcher(submap(segs, [np.array([x, 0.0, 0.3]) for x in np.linspace(-3, 3, 13)]), 4, field_sigma=field_sigma)
     truth = np.array([0.4, 0.1, 0.2])
     res = m.match(scan_points(segs, truth, 8.0), truth + [0.3, 0.05, 0.02], 1.0, math.radians(5), 0.55, REFINE, 0.02)
     assert res is not None and res.rescore >= 0.55  # it scores well ...
@@ -76,11 +87,60 @@ def test_ambiguous_match_in_a_symmetric_world_is_rejected():
     # the same search in the office (not symmetric) is accepted, with a covariance from its score surface
     segs = floor_plan()
     center = np.array([6.0, 1.25, 0.0])
-    m = SubmapMatcher(submap(segs, [center + [dx, 0.0, 0.0] for dx in np.linspace(-1, 1, 9)]), 4)
+    m = SubmapMatcher(submap(segs, [center + [dx, 0.0, 0.0] for dx in np.linspace(-1, 1, 9)]), 4, field_sigma=field_sigma)
     res = m.match(scan_points(segs, center), center + [0.3, 0.05, 0.02], 1.0, math.radians(5), 0.55, REFINE, 0.02)
     assert res.reason is None and res.margin >= 0.02
     assert np.hypot(*(res.pose - center)[:2]) < 0.05
     assert res.covariance.shape == (3, 3) and np.all(np.linalg.eigvalsh(res.covariance) > 0)
+
+
+def test_likelihood_field_equals_a_distance_transform():
+    """``likelihood_field`` (local SLAM's kernel stamped around every occupied cell) against plain numpy:
+    exp(−d²/2σ²) of the distance to the nearest known cell with p > 0.5, zero beyond 3σ, as uint8;
+    unknown cells never count as surfaces, and cells at the grid's borders get their full value."""
+    from scipy.ndimage import distance_transform_edt
+
+    from slam2d.backend.loop_closure import likelihood_field
+    from slam2d.grid.probability_grid import quantize
+
+    rng = np.random.default_rng(5)
+    for sigma, res in [(0.1, 0.05), (0.07, 0.05), (0.1, 0.03)]:
+        prob = quantize(np.where(rng.random((60, 90)) < 0.03, 0.8, rng.uniform(0.12, 0.5, (60, 90))).astype(np.float32))
+        prob[0, 5] = prob[59, 89] = 200  # surfaces on the borders
+        known = (rng.random((60, 90)) < 0.9).astype(np.uint8)
+        known[0, 5] = known[59, 89] = 1
+        grid = SimpleNamespace(prob=prob, known=known, resolution=res)
+        occ = (known > 0) & (prob.astype(np.float32) / 255.0 > 0.5)
+        d = distance_transform_edt(~occ) * res
+        radius = math.ceil(3 * sigma / res)  # whole cells, as local SLAM's field (ProbabilityGrid.field_radius)
+        want = np.where(d <= radius * res + 1e-9, np.exp(-0.5 * (d / sigma) ** 2), 0.0)
+        got = likelihood_field(grid, sigma).astype(int)
+        assert np.abs(got - np.round(want * 255).astype(int)).max() <= 1
+        assert got[0, 5] == 255 and got[59, 89] == 255
+        assert (got[occ] == 255).all() and (got[d > radius * res + 1e-9] == 0).all()
+
+
+def test_a_submap_seen_by_few_scans_is_matched_on_its_likelihood_field():
+    """A submap built from three scans with one beam in four: its walls read a probability of about
+    0.55 and its floor about 0.48, so on the probabilities a scan scores nearly the same at its true
+    pose and 0.4 m off, and the margin to a separated peak is a fraction of the likelihood field's.
+    On the field the match comes back to the true pose with a margin that passes verification."""
+    segs = floor_plan()
+    center = np.array([6.0, 1.25, 0.0])
+    sub = submap(segs, [center + [dx, 0.0, 0.0] for dx in (-0.8, 0.0, 0.8)], beam_step=4)
+    truth = center + [0.3, 0.05, 0.02]
+    pts = scan_points(segs, truth)
+    initial = truth + [0.25, -0.15, 0.03]
+    found = {}
+    for sigma in (None, 0.1):
+        m = SubmapMatcher(sub, 4, field_sigma=sigma)
+        own = m.self_score([(scan_points(segs, center), center)])
+        found[sigma] = m.match(pts, initial, 1.0, math.radians(5), 0.7 * own, REFINE, 0.02)
+        assert found[sigma] is not None
+    field, prob = found[0.1], found[None]
+    assert field.reason is None, field.reason
+    assert np.hypot(*(field.pose - truth)[:2]) < 0.05 and abs(field.pose[2] - truth[2]) < math.radians(0.5)
+    assert field.margin > 3 * prob.margin
 
 
 def test_pair_consistency_flags_the_contradicting_loop():

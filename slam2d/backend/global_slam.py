@@ -23,7 +23,7 @@ import numpy as np
 
 from slam2d.backend.consistency import ConsistencyParams, PairCache, inconsistent
 from slam2d.backend.drift import DriftBound
-from slam2d.backend.loop_closure import StackCache, SubmapMatcher, loop_points
+from slam2d.backend.loop_closure import StackCache, SubmapMatcher, loop_points, probability_self_score
 from slam2d.backend.wide_search import coarse_grid, coarse_match, frame_offset, submap_content
 from slam2d.geometry import between, compose, inverse, transform_points
 from slam2d.matching.real_time import unmatched_covariance
@@ -69,6 +69,7 @@ class GlobalSlam:
         self._last_step = None  # the newest node's (submaps, floored map-axes covariance), for the next step
         self.wide_searches = 0
         self.wide_accepted = 0
+        self.field_submaps = 0  # finished submaps scored on their likelihood field (``add_finished_submap``)
         self.sampled: list[int] = []  # nodes matched against finished submaps (and new submaps against them)
         self.sample_distance = cfg.motion_filter.max_distance
         self._last_pose, self._since_sample, self._travel = None, 0, 0.0
@@ -186,10 +187,17 @@ class GlobalSlam:
     def add_finished_submap(self, submap):
         if not self.lc.enabled:
             return
-        m = SubmapMatcher(submap, self.lc.branch_depth, self.stacks)
-        self.matchers[submap.index] = m
+        lc = self.lc
         own = [(self.nodes[j]["points"], self.nodes[j]["local"]) for j in submap.node_indices if j in self.nodes]
-        self.min_scores[submap.index] = min_score_for(self.lc, m.self_score(own))
+        score = probability_self_score(submap, own)
+        # ``loop_closure.score_grid``: auto scores a submap whose cells were each seen a few times (its
+        # threshold lowered by min_relative_score) on its likelihood field (``loop_closure.py``)
+        field = lc.score_grid == "likelihood_field" or (lc.score_grid == "auto" and min_score_for(lc, score) < lc.min_score)
+        m = SubmapMatcher(submap, lc.branch_depth, self.stacks,
+                          field_sigma=self.cfg.real_time_matcher.likelihood_field_sigma if field else None)
+        self.matchers[submap.index] = m
+        self.field_submaps += field
+        self.min_scores[submap.index] = min_score_for(lc, m.self_score(own) if field else score)
         submap.grid.pack()  # searches read the values from the matcher's cached stack from now on
         # earlier nodes near the new submap (sampled), excluding those inside it
         first = min(submap.node_indices, default=0)
@@ -558,6 +566,7 @@ class GlobalSlam:
             "search_mean_ms": round(1e3 * self.search_seconds / self.searches, 3) if self.searches else None,
             "optimizations": self.optimizations, "optimize_total_s": round(self.optimize_seconds, 3),
             "final_error": self.graph.last_error[1], "submaps": len(self.submap_local), "nodes": len(self.node_order),
+            "submaps_scored_on_field": self.field_submaps,
             "solver_process_peak_rss_mb": getattr(self.graph, "peak_rss_mb", None),
             "fresh_starts": list(self.fresh_starts), "fresh_starts_untied": self.untied_fresh_starts(),
         }}

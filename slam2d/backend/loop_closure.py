@@ -1,12 +1,26 @@
 """Loop-closure constraints (Hess et al. 2016, Sec. V): a node's scan is matched against a finished
-submap by branch-and-bound correlative search over precomputed max-pooled grids, scored as
-the mean probability under the scan's points; matches above ``min_score`` are refined below
-cell size and then verified before they become constraints. How high a right match scores
-depends on how often the submap's cells were observed, so the caller lowers ``min_score`` for
-a submap whose own nodes score low at their own poses (``self_score``):
+submap by branch-and-bound correlative search over precomputed max-pooled grids, scored as the
+mean value under the scan's points; matches above ``min_score`` are refined below cell size and
+then verified before they become constraints.
 
-- re-score: the mean probability at the refined pose (the float grid, nearest cell) must
-  still reach ``min_score`` (the lattice score alone can be a lucky cell);
+What is scored (``loop_closure.score_grid``): the submap's hit probabilities (Cartographer), or
+its likelihood field (Olson 2009, Sec. III: a Gaussian of the distance to the nearest cell likelier
+occupied than free, the field local SLAM matches against). A probability says how often a cell
+was seen hit and missed, so a submap whose cells were each seen by a few scans (scans far apart,
+an open hall) reads about 0.55 on its walls and 0.45 on its floor: a scan scores nearly the same
+at its true pose and a metre off, and the margin below cannot separate them. The field reads 1 on
+a wall and 0 a few σ off it however often the cell was seen. The caller chooses per submap
+(``global_slam.py``; ``auto``: the field where the submap's own nodes score low on its
+probabilities). The field decides *whether and where* a scan matches (search, re-score, margin);
+the probabilities *place* it: the refinement below cell size climbs them (``refinement_grid``;
+on the field, whose Gaussian blur flattens the peak, the relations error of dense logs grew), and
+an accepted match's covariance comes from their score surface (the field's sharper surface gave
+loops too much weight against local SLAM). How high a right match scores still depends on the
+submap, so the caller lowers ``min_score`` for a submap whose own nodes score low at their own
+poses (``self_score``):
+
+- re-score: the mean value at the refined pose (nearest cell) must still reach ``min_score``
+  (the lattice score alone can be a lucky cell);
 - ambiguity: an exhaustive search on the lattice around the refined pose (``margin_window``)
   finds the best *separated* local maximum (outside ``margin_exclusion`` of the peak); the
   peak must beat it by ``min_margin`` (a corridor's slide, repeated doors), and the peak must be
@@ -18,22 +32,24 @@ a submap whose own nodes score low at their own poses (``self_score``):
   by the curvature at the peak, flat directions get the whole window), in the submap grid
   frame — the caller floors it and turns it into the node's frame.
 
-Precomputation grids are built once per finished submap and kept as uint8 (probability ×
-255), which bounds their memory (level d is padded by 2^d − 1 cells on the low side so that
-the search is exact across the submap's borders; level 0 is the matcher's only copy of the
+Precomputation grids are built once per finished submap and kept as uint8 (value × 255), which
+bounds their memory (level d is padded by 2^d − 1 cells on the low side so that the search is
+exact across the submap's borders; level 0 is the matcher's only uncompressed copy of the
 values); scores are reported in [0, 1].
 """
 from __future__ import annotations
 
 import math
 import time
+import zlib
 from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
 
 from slam2d.geometry import between
-from slam2d.grid.probability_grid import quantize
+from slam2d.grid import _kernels as _grid_kernels
+from slam2d.grid.probability_grid import field_kernel, quantize
 from slam2d.matching import _kernels
 from slam2d.matching.real_time import _covariance, unmatched_covariance
 from slam2d.matching.refine import refine
@@ -60,12 +76,15 @@ class StackCache:
     its submap. Stacks are kept, most recently used first, up to ``max_bytes`` in all; beyond
     it the least recently searched go, and an evicted stack is rebuilt, identically, from the
     submap's uint8 grid when it is searched again. Memory is then bounded whatever the map's
-    size, and a map that fits the budget never rebuilds a stack.
+    size, and a map that fits the budget never rebuilds a stack. A matcher that scores the
+    likelihood field refines on the submap's probabilities: they are kept unpacked beside its
+    stack, counted in the budget and evicted with it.
     """
 
     def __init__(self, max_bytes: int):
         self.max_bytes = max_bytes
         self._stacks: OrderedDict[int, PrecomputationStack] = OrderedDict()
+        self._probabilities: dict[int, np.ndarray] = {}
         self.builds = 0
 
     def get(self, matcher: "SubmapMatcher") -> PrecomputationStack:
@@ -77,9 +96,18 @@ class StackCache:
         st = PrecomputationStack(matcher.source_grid(), matcher.depth)
         self.builds += 1
         self._stacks[key] = st
+        if matcher.scores_field:
+            self._probabilities[key] = matcher.submap.grid.prob
         while len(self._stacks) > 1 and self.nbytes > self.max_bytes:
-            self._stacks.popitem(last=False)
+            old, _ = self._stacks.popitem(last=False)
+            self._probabilities.pop(old, None)
         return st
+
+    def probabilities(self, matcher: "SubmapMatcher") -> np.ndarray:
+        """The submap's probabilities (uint8, × 255) unpacked: kept beside its stack."""
+        self.get(matcher)
+        p = self._probabilities.get(matcher.submap.index)
+        return matcher.submap.grid.prob if p is None else p
 
     def holds(self, key: int) -> bool:
         """Whether submap ``key``'s stack is cached (its next search builds none)."""
@@ -87,27 +115,44 @@ class StackCache:
 
     @property
     def nbytes(self) -> int:
-        return sum(st.nbytes for st in self._stacks.values())
+        return sum(st.nbytes for st in self._stacks.values()) + sum(p.nbytes for p in self._probabilities.values())
 
     def clear(self) -> None:
         """Drop every stack (a later search rebuilds its own)."""
         self._stacks.clear()
+        self._probabilities.clear()
 
 
 class SubmapMatcher:
     """Branch-and-bound matcher for one finished submap."""
 
-    def __init__(self, submap, depth: int, cache: StackCache | None = None):
+    def __init__(self, submap, depth: int, cache: StackCache | None = None, field_sigma: float | None = None):
+        """``field_sigma``: score against the submap's likelihood field of this σ [m] (module docstring),
+        made here and kept zlib-compressed; None: against its probabilities."""
         g = submap.grid
         self.submap = submap
         self.depth = depth
+        self._field = None
+        if field_sigma:
+            f = likelihood_field(g, field_sigma)
+            self._field = (zlib.compress(f.tobytes(), 1), f.shape)
         self.cache = StackCache(0) if cache is None else cache  # alone: keeps its one stack
         known = np.argwhere(g.known > 0)
         self.center_local = (g.origin + (known.mean(axis=0)[::-1] + 0.5) * g.resolution) if len(known) else g.origin
 
+    @property
+    def scores_field(self) -> bool:
+        """Whether matches are scored against the likelihood field (else the probabilities)."""
+        return self._field is not None
+
     def source_grid(self) -> MatchGrid:
-        """The submap's probabilities as uint8 (× 255), read from the submap (unpacked if packed)."""
+        """The values scored, as uint8 (× 255): the likelihood field (unpacked), or the submap's
+        probabilities read from the submap (unpacked if packed)."""
         g = self.submap.grid
+        if self._field is not None:
+            z, shape = self._field
+            f = np.frombuffer(zlib.decompress(z), dtype=np.uint8).reshape(shape).copy()
+            return MatchGrid(f, g.origin, g.resolution, 0.0)
         p = g.prob
         q = p if p.dtype == np.uint8 else quantize(p)  # a finished submap's grid is uint8 already
         return MatchGrid(q, g.origin, g.resolution, float(round(g.unknown_probability * 255)))
@@ -119,16 +164,10 @@ class SubmapMatcher:
         return self.stack.grid
 
     def self_score(self, points_and_poses) -> float:
-        """Mean probability under the submap's own nodes' points at their own poses (grid frame):
-        the score a perfect match reaches in this submap, which depends on how often its cells
-        were observed. NaN without nodes."""
-        scores = []
-        prob = self.prob
-        for pts, pose in points_and_poses:
-            if len(pts):
-                cells = prob.cells(pts, np.asarray(pose, dtype=float), np.zeros(1))
-                scores.append(float(exhaustive(prob, cells, 0)[0, 0, 0]))
-        return float(np.mean(scores)) if scores else float("nan")
+        """Mean value of the scored grid under the submap's own nodes' points at their own poses (grid
+        frame): the score a perfect match reaches in this submap, which depends on how often its
+        cells were observed. NaN without nodes."""
+        return _self_score(self.prob, points_and_poses)
 
     @property
     def stack(self) -> PrecomputationStack:
@@ -136,10 +175,19 @@ class SubmapMatcher:
 
     @property
     def prob(self) -> MatchGrid:
-        """The uint8 grid read as the probabilities ``dequantize`` gives, for refinement and
-        verification (``MatchGrid.scale``: no float copy of the submap is made)."""
+        """The uint8 grid read as the values in [0, 1] it holds, for verification and scoring
+        (``MatchGrid.scale``: no float copy of the submap is made)."""
         g = self.grid
-        return MatchGrid(g.values, g.origin, g.resolution, self.submap.grid.unknown_probability, 1.0 / 255.0)
+        unknown = 0.0 if self._field is not None else self.submap.grid.unknown_probability
+        return MatchGrid(g.values, g.origin, g.resolution, unknown, 1.0 / 255.0)
+
+    def refinement_grid(self, scored: MatchGrid) -> MatchGrid:
+        """The probabilities the refinement climbs: ``scored`` itself when that holds them, else the
+        submap's own (kept unpacked beside its stack, ``StackCache.probabilities``)."""
+        if self._field is None:
+            return scored
+        g = self.submap.grid
+        return MatchGrid(self.cache.probabilities(self), g.origin, g.resolution, g.unknown_probability, 1.0 / 255.0)
 
     def match(self, points, initial, linear_window, angular_window, min_score, refine_weights,
               min_margin=0.0, margin_window=(0.6, 0.035), margin_exclusion=(0.2, 0.0175)) -> LoopMatch | None:
@@ -155,14 +203,19 @@ class SubmapMatcher:
         res = self.grid.resolution
         pose = np.array([initial[0] + dx * res, initial[1] + dy * res, initial[2] + params.angles[a]])
         prob = self.prob
-        pose, _ = refine(prob, pose, points, *refine_weights)
+        pose, _ = refine(self.refinement_grid(prob), pose, points, *refine_weights)
         out = LoopMatch(pose, between(self.submap.local_pose, pose), score / 255.0, 0.0)
         self.verify(out, points, min_score, min_margin, margin_window, margin_exclusion, params.angular_step, prob)
         out.seconds = time.perf_counter() - t0
         return out
 
     def verify(self, m: LoopMatch, points, min_score, min_margin, window, exclusion, step, prob=None) -> LoopMatch:
-        """Fill rescore, margin and covariance from an exhaustive window around the refined pose."""
+        """Fill rescore, margin and covariance from an exhaustive window around the refined pose.
+
+        Rescore and margin judge the scored grid (``prob``: the field or the probabilities); the
+        covariance of an accepted match comes from the probabilities' window, whose surface the
+        refinement climbed to place it (a rejected match keeps the scored window's, for the record).
+        """
         res = self.grid.resolution
         prob = self.prob if prob is None else prob
         n_ang = max(2, int(np.ceil(window[1] / step)))
@@ -173,8 +226,6 @@ class SubmapMatcher:
         m.rescore = float(scores[n_ang, w, w])
         ex_lin, ex_ang = int(np.ceil(exclusion[0] / res)), int(np.ceil(exclusion[1] / step))
         m.margin = separated_margin(scores, ex_lin, ex_ang)
-        params = SearchParameters(angles, w, step, res)
-        m.covariance = _covariance(scores, params, len(points), unmatched_covariance(window[0], window[1]))
         # the margin is the window's best pose's; the constraint is the refined pose (the window's
         # centre), so that must be the peak, or the margin speaks of another pose
         a, iy, ix = np.unravel_index(int(np.argmax(scores)), scores.shape)
@@ -187,7 +238,46 @@ class SubmapMatcher:
                         f"scores {float(scores[a, iy, ix]):.3f} > {m.rescore:.3f}")
         elif m.margin < min_margin:
             m.reason = f"ambiguous: margin {m.margin:.3f} < {min_margin} to a separated peak"
+        if m.reason is None and self._field is not None:
+            estimated = self.refinement_grid(prob)
+            scores = exhaustive(estimated, estimated.cells(points, m.pose, angles), w)
+        params = SearchParameters(angles, w, step, res)
+        m.covariance = _covariance(scores, params, len(points), unmatched_covariance(window[0], window[1]))
         return m
+
+
+def _self_score(grid: MatchGrid, points_and_poses) -> float:
+    scores = []
+    for pts, pose in points_and_poses:
+        if len(pts):
+            cells = grid.cells(pts, np.asarray(pose, dtype=float), np.zeros(1))
+            scores.append(float(exhaustive(grid, cells, 0)[0, 0, 0]))
+    return float(np.mean(scores)) if scores else float("nan")
+
+
+def probability_self_score(submap, points_and_poses) -> float:
+    """``SubmapMatcher.self_score`` on the submap's probabilities, read from its grid (no matcher, no
+    stack): how often its cells were observed, which decides ``loop_closure.score_grid: auto``."""
+    g = submap.grid
+    p = g.prob
+    grid = MatchGrid(p, g.origin, g.resolution, g.unknown_probability, 1.0 / 255.0) if p.dtype == np.uint8 else \
+        MatchGrid(p, g.origin, g.resolution, g.unknown_probability)
+    return _self_score(grid, points_and_poses)
+
+
+def likelihood_field(grid, sigma: float) -> np.ndarray:
+    """A finished grid's likelihood field as uint8 (× 255): per cell, exp(−d²/2σ²) of the distance d
+    between its centre and the nearest cell likelier occupied than free, zero beyond 3σ (rounded up
+    to whole cells) — local SLAM's field (``ProbabilityGrid``), stamped by the same kernel."""
+    p = grid.prob
+    half = 127 if p.dtype == np.uint8 else 0.5  # uint8 127 is 0.498, 128 is 0.502
+    occ = (grid.known > 0) & (p > half)
+    radius = max(1, int(math.ceil(3.0 * sigma / grid.resolution)))
+    field = np.zeros(occ.shape, dtype=np.float32)
+    cells = np.argwhere(occ).astype(np.int32)  # the dtype of local SLAM's flips: one compiled kernel
+    _grid_kernels.stamp_field(field, occ.astype(np.float32), cells, len(cells), field_kernel(sigma, grid.resolution, radius),
+                              radius)
+    return quantize(field)
 
 
 def separated_margin(scores: np.ndarray, lin: int, ang: int) -> float:
