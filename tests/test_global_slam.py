@@ -462,3 +462,5 @@ def test_auto_scores_weakly_observed_submaps_on_their_likelihood_field():
     assert final and all(agrees(gt, r, 0.3, 2.0) for r in final)
     on_field = {k for k, m in gs.matchers.items() if m.scores_field}
     assert any(r["submap"] in on_field for r in final)  # the field's matches close loops too
+    # constraints.jsonl says which grid each search scored
+    assert all(r["score_grid"] == ("likelihood_field" if r["submap"] in on_field else "probability") for r in gs.records)

@@ -337,7 +337,7 @@ class GlobalSlam:
         rec = {"submap": int(k), "from_scan": int(frm), "to_scan": int(j),
                "from_stamp": self.nodes[frm]["stamp"], "to_stamp": node["stamp"],
                "search_ms": round(dt * 1e3, 3), "window": [round(lin, 3), round(math.degrees(ang), 2)],
-               "min_score": round(min_score, 4)}
+               "min_score": round(min_score, 4), "score_grid": "likelihood_field" if m.scores_field else "probability"}
         loop = None
         if res is None:
             rec.update({"relative_pose": None, "score": None, "accepted": False, "reason": f"no match above {min_score:.3f}",
