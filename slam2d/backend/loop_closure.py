@@ -77,8 +77,8 @@ class StackCache:
     it the least recently searched go, and an evicted stack is rebuilt, identically, from the
     submap's uint8 grid when it is searched again. Memory is then bounded whatever the map's
     size, and a map that fits the budget never rebuilds a stack. A matcher that scores the
-    likelihood field refines on the submap's probabilities: they are kept unpacked beside its
-    stack, counted in the budget and evicted with it.
+    likelihood field refines on the submap's probabilities: once a match needs them they are kept
+    unpacked beside its stack, counted in the budget and evicted with it.
     """
 
     def __init__(self, max_bytes: int):
@@ -96,18 +96,22 @@ class StackCache:
         st = PrecomputationStack(matcher.source_grid(), matcher.depth)
         self.builds += 1
         self._stacks[key] = st
-        if matcher.scores_field:
-            self._probabilities[key] = matcher.submap.grid.prob
         while len(self._stacks) > 1 and self.nbytes > self.max_bytes:
             old, _ = self._stacks.popitem(last=False)
             self._probabilities.pop(old, None)
         return st
 
     def probabilities(self, matcher: "SubmapMatcher") -> np.ndarray:
-        """The submap's probabilities (uint8, × 255) unpacked: kept beside its stack."""
+        """The submap's probabilities (uint8, × 255), unpacked on the first match that refines against
+        them and kept beside its stack from then on."""
+        key = matcher.submap.index
         self.get(matcher)
-        p = self._probabilities.get(matcher.submap.index)
-        return matcher.submap.grid.prob if p is None else p
+        p = self._probabilities.get(key)
+        if p is None:
+            p = matcher.submap.grid.prob
+            if key in self._stacks:
+                self._probabilities[key] = p
+        return p
 
     def holds(self, key: int) -> bool:
         """Whether submap ``key``'s stack is cached (its next search builds none)."""
