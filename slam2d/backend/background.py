@@ -62,7 +62,14 @@ class Background:
         self._waited = threading.Event()  # set while the caller waits for the worker: its cores are free
         self._thread = threading.Thread(target=_work, args=(self._queue, self, self._idle, self._waited), name=name,
                                         daemon=True)
-        self._thread.start()
+        # counted here, not when the thread gets going: a worker that has not started yet still lives
+        # for ``_SwitchInterval`` (another's end must not restore the interval before it runs)
+        _SwitchInterval.enter()
+        try:
+            self._thread.start()
+        except BaseException:
+            _SwitchInterval.leave()
+            raise
         # a Slam dropped without finish: the thread ends once it has drained its queue
         self._finalizer = weakref.finalize(self, self._queue.put, None)
 
@@ -109,8 +116,7 @@ def _work(q: queue.SimpleQueue, owner: Background, idle: threading.Event, waited
     ref = weakref.ref(owner)
     del owner
     threads = numba.get_num_threads()  # numba's thread count is per calling thread
-    _SwitchInterval.enter()
-    try:
+    try:  # entered by ``Background.__init__``
         _drain(q, ref, idle, waited, threads)
     finally:
         _SwitchInterval.leave()
