@@ -311,3 +311,19 @@ def test_frozen_grid_keeps_known_mask_and_observed_cells_exactly():
     assert want.any() and (~want).any()
     np.testing.assert_allclose(g.probability(unknown_value=0.5), prob, atol=0.5 / 255)
     assert g._known_bits.nbytes <= known.size // 8 + known.shape[0]  # a bit a cell (plus a row's last byte)
+
+
+@pytest.mark.parametrize("fill", [0, 0.5])
+@pytest.mark.parametrize("r0,c0,extra_r,extra_c", [(0, 0, 3, 2), (4, 0, 0, 5), (0, 6, 2, 0), (3, 2, 5, 4), (2, 3, 0, 0)])
+def test_grown_array_matches_a_filled_copy(fill, r0, c0, extra_r, extra_c):
+    """``_grown`` (the grid's growth: every element written once) against np.full and a slice copy,
+    the old array placed on every side of the new one."""
+    from slam2d.grid.probability_grid import _grown
+
+    old = np.arange(1, 13, dtype=np.float32).reshape(3, 4)
+    shape = (3 + r0 + extra_r, 4 + c0 + extra_c)
+    want = np.full(shape, fill, dtype=np.float32)
+    want[r0:r0 + 3, c0:c0 + 4] = old
+    got = _grown(old, shape, r0, c0, fill)
+    assert got.dtype == old.dtype
+    np.testing.assert_array_equal(got, want)

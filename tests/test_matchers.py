@@ -185,6 +185,32 @@ def test_stack_cache_keeps_the_most_recent_and_rebuilds_identically():
     assert cache.builds == 4
 
 
+def test_stack_cache_keeps_a_working_set_of_stacks_beyond_its_byte_budget():
+    """Searches cycling over three submaps whose stacks outgrow the byte budget: a cache whose floor
+    is three stacks builds each once and keeps them all; with no floor it rebuilds at every turn."""
+    from types import SimpleNamespace
+
+    from slam2d.backend.loop_closure import StackCache, SubmapMatcher
+    from slam2d.grid.probability_grid import ProbabilityGrid
+
+    rng = np.random.default_rng(3)
+    subs = []
+    for k in range(3):
+        g = ProbabilityGrid(0.05)
+        g.insert(np.zeros(2), rng.uniform(-2, 2, (80, 2)))
+        subs.append(SimpleNamespace(index=k, grid=g, local_pose=np.zeros(3)))
+    one = SubmapMatcher(subs[0], 3, StackCache(0)).stack.nbytes
+    for floor, builds in ((3, 3), (1, 12)):
+        cache = StackCache(one + 1, min_stacks=floor)  # bytes for one stack only
+        ms = [SubmapMatcher(s, 3, cache) for s in subs]
+        for _ in range(4):
+            for m in ms:
+                m.stack
+        assert cache.builds == builds
+        assert len(cache._stacks) == floor
+        assert cache.nbytes > cache.max_bytes or floor == 1
+
+
 def test_packed_finished_submap_searches_as_before():
     """A finished submap's grid packed (zlib) reads back the same values and shape, takes far less
     memory, and a matcher over it, whose stack is evicted and rebuilt from the packed grid, finds

@@ -53,7 +53,8 @@ class GlobalSlam:
                            incremental=lc.incremental)
         self.matchers: dict[int, SubmapMatcher] = {}
         self.min_scores: dict[int, float] = {}  # per finished submap: the score a loop match must reach
-        self.stacks = StackCache(STACK_CACHE_BYTES)
+        # one node's search (``max_submaps_per_node``) and a newly finished submap's own search
+        self.stacks = StackCache(STACK_CACHE_BYTES, min_stacks=lc.max_submaps_per_node + 1)
         self.coarse = {}  # per finished submap: its coarse grid for the wide search, made on first use
         self._centres: dict[int, np.ndarray] = {}  # per finished submap: ``_centre_from_anchor``
         self._centres_at = None                      # ``_submap_centres``'s cache and when it was made

@@ -76,13 +76,18 @@ class StackCache:
     its submap. Stacks are kept, most recently used first, up to ``max_bytes`` in all; beyond
     it the least recently searched go, and an evicted stack is rebuilt, identically, from the
     submap's uint8 grid when it is searched again. Memory is then bounded whatever the map's
-    size, and a map that fits the budget never rebuilds a stack. A matcher that scores the
+    size, and a map that fits the budget never rebuilds a stack. The budget gives way only to
+    ``min_stacks``: one sampled node is matched against several submaps in turn, and the node
+    after it against nearly the same ones, so a cache holding fewer stacks than that working set
+    rebuilds every one of them at every node (large submaps, a long-range laser in open halls);
+    the stacks one node needs are kept whatever their size. A matcher that scores the
     likelihood field refines on the submap's probabilities: once a match needs them they are kept
     unpacked beside its stack, counted in the budget and evicted with it.
     """
 
-    def __init__(self, max_bytes: int):
+    def __init__(self, max_bytes: int, min_stacks: int = 1):
         self.max_bytes = max_bytes
+        self.min_stacks = max(1, int(min_stacks))
         self._stacks: OrderedDict[int, PrecomputationStack] = OrderedDict()
         self._probabilities: dict[int, np.ndarray] = {}
         self.builds = 0
@@ -96,7 +101,7 @@ class StackCache:
         st = PrecomputationStack(matcher.source_grid(), matcher.depth)
         self.builds += 1
         self._stacks[key] = st
-        while len(self._stacks) > 1 and self.nbytes > self.max_bytes:
+        while len(self._stacks) > self.min_stacks and self.nbytes > self.max_bytes:
             old, _ = self._stacks.popitem(last=False)
             self._probabilities.pop(old, None)
         return st

@@ -171,10 +171,7 @@ class ProbabilityGrid:
             add_top = r1 - rows + 1 + mr if r1 >= rows else 0
             new_shape = (rows + add_bottom + add_top, cols + add_left + add_right)
             for name, dtype, fill in self._arrays():
-                old = getattr(self, name)
-                new = np.full(new_shape, fill, dtype=dtype)
-                new[add_bottom:add_bottom + rows, add_left:add_left + cols] = old
-                setattr(self, name, new)
+                setattr(self, name, _grown(getattr(self, name), new_shape, add_bottom, add_left, fill))
             self.origin = self._cell_origin(-add_left, -add_bottom)
         else:
             self.origin, shape = self._frame_for(xmin, ymin, xmax, ymax)
@@ -340,6 +337,23 @@ class _ScanBatch:
             a -= origin
             a /= resolution
         return self.origins, self.ends
+
+
+def _grown(old: np.ndarray, shape: tuple[int, int], r0: int, c0: int, fill) -> np.ndarray:
+    """``old`` placed at rows ``r0``…, columns ``c0``… of a new array of ``shape``, ``fill`` elsewhere.
+    Every element is written once: a zero fill is left to the zeroed pages the allocator maps, any
+    other goes only where ``old`` does not."""
+    rows, cols = old.shape
+    if fill == 0:
+        new = np.zeros(shape, dtype=old.dtype)
+    else:
+        new = np.empty(shape, dtype=old.dtype)
+        new[:r0] = fill
+        new[r0 + rows:] = fill
+        new[r0:r0 + rows, :c0] = fill
+        new[r0:r0 + rows, c0 + cols:] = fill
+    new[r0:r0 + rows, c0:c0 + cols] = old
+    return new
 
 
 def quantize(prob: np.ndarray) -> np.ndarray:
