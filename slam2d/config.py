@@ -91,6 +91,7 @@ class RefineConfig(_Section):
     translation_weight: float = Field(3.0, ge=0.0, description="Weight pulling x/y toward the correlative pose.")
     rotation_weight: float = Field(10.0, ge=0.0, description="Weight pulling theta toward the correlative pose.")
     max_iterations: int = Field(20, ge=1, description="Gauss-Newton iterations at most.")
+    unobserved: Literal["surface_free", "min_probability"] = Field("surface_free", description="What a cell of the submap that no scan has observed reads as in the refinement. min_probability: the grid's lowest probability (Cartographer). A wall seen from one side then reads lower behind it than before it, the interpolated peak lies toward the side it was seen from, and scans are pulled that way: on logs whose cells are seen by a few scans each (scans a metre apart) whole maps came out too small. surface_free: a cell just behind a surface reads as the surface's observed free side (mirrored across it), any other as this submap's free cells beside surfaces typically read, so a wall reads alike on both sides; where cells are seen by many scans these values sit near the lowest probability.")
 
 
 class LoopClosureConfig(_Section):

@@ -382,7 +382,7 @@ class LocalSlam:
                 pose, score, match = m.pose, m.score, m
                 if self.cfg.refine.enabled:
                     r = self.cfg.refine
-                    pose, _ = refine(submap.probability_grid(), pose, points, r.occupied_space_weight, r.translation_weight,
+                    pose, _ = refine(submap.refinement_grid(r.unobserved), pose, points, r.occupied_space_weight, r.translation_weight,
                                      r.rotation_weight, r.max_iterations)
                     timings["refine"] = (time.perf_counter() - t2) * 1e3
                 along = degenerate_direction(points)

@@ -130,12 +130,67 @@ def test_bicubic_value_and_gradient():
     out = np.empty(3)
     for _ in range(50):
         u, v = rng.uniform(-1, 15), rng.uniform(-1, 13)
-        _kernels.bicubic(values, u, v, 0.2, out)
+        _kernels.bicubic(values, u, v, 0.2, out, _kernels.ALL_KNOWN)
         assert out[0] == pytest.approx(bicubic_oracle(values, u, v, 0.2), abs=1e-9)
         h = 1e-6
         du = (bicubic_oracle(values, u + h, v, 0.2) - bicubic_oracle(values, u - h, v, 0.2)) / (2 * h)
         dv = (bicubic_oracle(values, u, v + h, 0.2) - bicubic_oracle(values, u, v - h, 0.2)) / (2 * h)
         assert out[1] == pytest.approx(du, abs=1e-5) and out[2] == pytest.approx(dv, abs=1e-5)
+
+
+def unobserved_oracle(values, known, unknown):
+    """``values`` with every never-observed cell replaced as ``_kernels._unobserved`` reads it: the
+    mean of the observed free cells (< 0.5) two cells away along a row or column beyond an observed
+    occupied one (> 0.5); ``unknown`` where there is none. Plain loops."""
+    rows, cols = values.shape
+    out = values.astype(np.float64)
+    for r in range(rows):
+        for c in range(cols):
+            if known[r, c] > 0:
+                continue
+            found = []
+            for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+                r1, c1, r2, c2 = r + dr, c + dc, r + 2 * dr, c + 2 * dc
+                if 0 <= r2 < rows and 0 <= c2 < cols and known[r1, c1] > 0 and values[r1, c1] > 0.5 \
+                        and known[r2, c2] > 0 and values[r2, c2] < 0.5:
+                    found.append(float(values[r2, c2]))
+            out[r, c] = sum(found) / len(found) if found else unknown
+    return out
+
+
+def test_bicubic_reads_unobserved_cells_as_the_oracle_says():
+    """With a ``known`` mask (an active grid's stamps), a never-updated cell reads as the free side of
+    a surface it lies just behind, else as ``unknown``: the oracle on the grid with those cells
+    replaced; values and gradients equal (to float rounding)."""
+    rng = np.random.default_rng(4)
+    values = rng.random((12, 14)).astype(np.float32)
+    stamps = rng.integers(0, 3, values.shape).astype(np.int32)  # 0: never updated
+    swapped = unobserved_oracle(values, stamps, 0.375)
+    assert (swapped != np.where(stamps > 0, values, 0.375)).any()  # some cells are mirrored
+    out, ref = np.empty(3), np.empty(3)
+    for _ in range(50):
+        u, v = rng.uniform(-1, 15), rng.uniform(-1, 13)
+        _kernels.bicubic(values, u, v, 0.375, out, stamps)
+        _kernels.bicubic(swapped, u, v, 0.375, ref, _kernels.ALL_KNOWN)
+        assert out[0] == pytest.approx(bicubic_oracle(swapped, u, v, 0.375), abs=1e-6)
+        np.testing.assert_allclose(out, ref, rtol=0, atol=1e-9)
+
+
+def test_refinement_with_a_known_mask_equals_refinement_on_the_swapped_grid():
+    from slam2d.matching.refine import refine
+
+    rng = np.random.default_rng(6)
+    values = rng.random((40, 40)).astype(np.float32)
+    stamps = (rng.random(values.shape) > 0.4).astype(np.int32)
+    swapped = unobserved_oracle(values, stamps, 0.4375)
+    pts = rng.uniform(0.3, 1.7, (60, 2))
+    masked = MatchGrid(values, np.zeros(2), 0.05, 0.4375, known=stamps)
+    plain = MatchGrid(swapped, np.zeros(2), 0.05, 0.4375)
+    for init in ([0.01, -0.02, 0.03], [0.0, 0.0, 0.0]):
+        a, ca = refine(masked, np.array(init), pts, 1.0, 1.0, 1.0, 20)
+        b, cb = refine(plain, np.array(init), pts, 1.0, 1.0, 1.0, 20)
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-9)
+        assert ca == pytest.approx(cb, abs=1e-9)
 
 
 def test_angular_step_rule():

@@ -13,6 +13,9 @@ import math
 import numpy as np
 from numba import njit, prange
 
+#: ``known`` for a grid whose every cell was observed (``_bicubic``)
+ALL_KNOWN = np.zeros((0, 0), dtype=np.int32)
+
 
 @njit(cache=True, nogil=True)
 def quantize_up(values):
@@ -153,9 +156,36 @@ def _dw(t):
             0.5 * (-9.0 * t2 + 8.0 * t + 1.0), 0.5 * (3.0 * t2 - 2.0 * t))
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _unobserved(values, known, r, c, rows, cols, unknown):
+    """What a never-observed cell (r, c) reads as: the mean of the observed cells likelier free than
+    occupied that lie two cells away along a row or column, beyond an observed cell likelier
+    occupied (the free side of a surface the cell lies just behind, mirrored across it); else
+    ``unknown``."""
+    acc = 0.0
+    n = 0
+    for d in range(4):
+        dr = 1 if d == 0 else -1 if d == 1 else 0
+        dc = 1 if d == 2 else -1 if d == 3 else 0
+        r2 = r + 2 * dr
+        c2 = c + 2 * dc
+        if 0 <= r2 < rows and 0 <= c2 < cols:
+            r1 = r + dr
+            c1 = c + dc
+            if known[r1, c1] > 0 and values[r1, c1] > 0.5 and known[r2, c2] > 0 and values[r2, c2] < 0.5:
+                acc += values[r2, c2]
+                n += 1
+    return acc / n if n else unknown
+
+
 @njit(cache=True, nogil=True)
-def _bicubic(values, u, v, unknown, scale=1.0):
+def _bicubic(values, u, v, unknown, scale, known):
+    """Value and gradient. A cell outside the grid reads as ``unknown``; so does one whose ``known``
+    entry is 0 or less (when ``known`` has the grid's shape; an empty ``known``: every cell is
+    observed), unless it lies just behind a surface: then as that surface's free side
+    (``_unobserved``). Masked grids hold probabilities (scale 1)."""
     rows, cols = values.shape
+    masked = known.shape[0] == rows and known.shape[1] == cols
     scaled = scale != 1.0
     s32 = np.float32(scale)
     uu = u - 0.5
@@ -179,7 +209,10 @@ def _bicubic(values, u, v, unknown, scale=1.0):
         for ii in range(4):
             c = i0 - 1 + ii
             if inside or (0 <= r < rows and 0 <= c < cols):
-                val = np.float32(values[r, c]) * s32 if scaled else values[r, c]
+                if masked and known[r, c] <= 0:
+                    val = _unobserved(values, known, r, c, rows, cols, unknown)
+                else:
+                    val = np.float32(values[r, c]) * s32 if scaled else values[r, c]
             else:
                 val = unknown
             rf += wx[ii] * val
@@ -191,12 +224,12 @@ def _bicubic(values, u, v, unknown, scale=1.0):
 
 
 @njit(cache=True, nogil=True)
-def bicubic(values, u, v, unknown, out):
+def bicubic(values, u, v, unknown, out, known):
     """Catmull-Rom bicubic value and gradient at continuous cell coordinates (u = x, v = y; cell centres at +0.5).
 
     Writes (value, d/du, d/dv) into ``out``.
     """
-    f, fu, fv = _bicubic(values, u, v, unknown)
+    f, fu, fv = _bicubic(values, u, v, unknown, 1.0, known)
     out[0] = f
     out[1] = fu
     out[2] = fv
@@ -204,7 +237,7 @@ def bicubic(values, u, v, unknown, out):
 
 @njit(cache=True, nogil=True)
 def _normal_equations(values, ox, oy, res, unknown, points, x, y, t, x0, y0, t0, scale, w_t, w_r, h, g,
-                      value_scale=1.0):
+                      value_scale, known):
     """Cost at (x, y, t), and the Gauss-Newton Hessian ``h`` and gradient ``g`` there (one pass over the points)."""
     c = math.cos(t)
     s = math.sin(t)
@@ -216,7 +249,7 @@ def _normal_equations(values, ox, oy, res, unknown, points, x, y, t, x0, y0, t0,
         py0 = points[i, 1]
         px = x + c * px0 - s * py0
         py = y + s * px0 + c * py0
-        f, fu, fv = _bicubic(values, (px - ox) / res, (py - oy) / res, unknown, value_scale)
+        f, fu, fv = _bicubic(values, (px - ox) / res, (py - oy) / res, unknown, value_scale, known)
         r = scale * (1.0 - f)
         tot += r * r
         j0 = -scale * fu / res
@@ -248,14 +281,15 @@ FUNCTION_TOLERANCE = 1e-6
 
 
 @njit(cache=True, nogil=True)
-def refine_pose(values, ox, oy, res, unknown, points, x0, y0, t0, w_occ, w_t, w_r, max_iter, value_scale=1.0):
+def refine_pose(values, ox, oy, res, unknown, points, x0, y0, t0, w_occ, w_t, w_r, max_iter, value_scale, known):
     """Levenberg-Marquardt on Σ (w_occ/√N · (1 − P(T p)))² + w_t²|t − t0|² + w_r²(θ − θ0)².
 
     Cartographer's Ceres scan matcher cost on a bicubic-interpolated probability grid. Each
     iteration is one pass over the points: the trial pose's cost comes with its normal
     equations, which the next step uses when the trial is accepted. Stops on Ceres' default
     rules (relative cost decrease below 1e-6, or a negligible step) or after ``max_iter``
-    trials. Returns (x, y, theta, final cost, iterations).
+    trials. Returns (x, y, theta, final cost, iterations). ``known``: cells whose entry is 0 or less
+    read as ``unknown`` (``_bicubic``).
     """
     n = points.shape[0]
     scale = w_occ / math.sqrt(max(n, 1))
@@ -267,7 +301,7 @@ def refine_pose(values, ox, oy, res, unknown, points, x0, y0, t0, w_occ, w_t, w_
     gn = np.zeros(3)
     hd = np.zeros((3, 3))
     cost = _normal_equations(values, ox, oy, res, unknown, points, x, y, t, x0, y0, t0, scale, w_t, w_r, h, g,
-                             value_scale)
+                             value_scale, known)
     it = 0
     for it in range(max_iter):
         hd[:, :] = h
@@ -276,7 +310,7 @@ def refine_pose(values, ox, oy, res, unknown, points, x0, y0, t0, w_occ, w_t, w_
         d = np.linalg.solve(hd, -g)
         nx, ny, nt = x + d[0], y + d[1], t + d[2]
         nc = _normal_equations(values, ox, oy, res, unknown, points, nx, ny, nt, x0, y0, t0, scale, w_t, w_r, hn, gn,
-                               value_scale)
+                               value_scale, known)
         if nc < cost:
             decrease = cost - nc
             x, y, t = nx, ny, nt

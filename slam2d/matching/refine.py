@@ -24,5 +24,6 @@ def refine(grid: MatchGrid, initial, points: np.ndarray, occupied_weight=1.0, tr
                                             np.ascontiguousarray(points, dtype=np.float64),
                                             float(initial[0]), float(initial[1]), float(initial[2]),
                                             float(occupied_weight), float(translation_weight),
-                                            float(rotation_weight), int(max_iterations), float(grid.scale))
+                                            float(rotation_weight), int(max_iterations), float(grid.scale),
+                                            _kernels.ALL_KNOWN if grid.known is None else grid.known)
     return np.array([x, y, t]), float(cost)

@@ -59,6 +59,9 @@ class MatchGrid:
     #: exhaustive scoring and refinement read a cell as float32(value) × float32(scale): 1/255 reads a
     #: uint8 grid as its ``dequantize``d probabilities, without the float copy (branch-and-bound ignores it)
     scale: float = 1.0
+    #: refinement only: cells whose entry here is 0 or less (e.g. an active grid's stamps: never
+    #: updated) read as ``unknown`` too; None: every cell holds its value (the scorers ignore it)
+    known: np.ndarray | None = None
 
     def cells(self, points, pose, angles) -> np.ndarray:
         return _kernels.rotated_cells(np.ascontiguousarray(points, dtype=np.float64), float(pose[0]), float(pose[1]),
