@@ -329,40 +329,14 @@ def test_grown_array_matches_a_filled_copy(fill, r0, c0, extra_r, extra_c):
     np.testing.assert_array_equal(got, want)
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_free_beside_surfaces_matches_oracle(seed):
-    """The kernel's median of free cells beside an occupied one (4-neighbourhood, known cells only)
-    against plain numpy: within half a histogram bin of the lower median; NaN without such cells."""
-    from slam2d.grid._kernels import free_beside_surfaces
-
-    rng = np.random.default_rng(seed)
-    shape = (30, 41)
-    logodds = rng.normal(-0.3, 1.0, shape).astype(np.float32)
-    prob = (1.0 / (1.0 + np.exp(-logodds))).astype(np.float32)
-    stamp = (rng.random(shape) > 0.3).astype(np.int32) * rng.integers(1, 9, shape).astype(np.int32)
-    known = stamp > 0
-    occ = known & (logodds > 0)
-    beside = np.zeros(shape, bool)
-    beside[1:] |= occ[:-1]
-    beside[:-1] |= occ[1:]
-    beside[:, 1:] |= occ[:, :-1]
-    beside[:, :-1] |= occ[:, 1:]
-    v = np.sort(prob[known & (logodds < 0) & beside])
-    want = v[(len(v) + 1) // 2 - 1]
-    bins = 2048
-    got = free_beside_surfaces(logodds, prob, stamp, bins)
-    assert abs(got - want) <= 0.5 / (2 * bins) + 1e-7
-    assert np.isnan(free_beside_surfaces(logodds, prob, np.zeros(shape, np.int32), bins))
-    assert np.isnan(free_beside_surfaces(-np.abs(logodds), prob, stamp, bins))  # nothing occupied
-
-
 @pytest.mark.parametrize("scans", [1, 2, 3])
 def test_refinement_is_not_pulled_toward_where_a_wall_was_seen_from(scans):
     """A corridor with an end wall ahead, mapped by a few scans from behind, and a scan from 1-2 m
-    closer refined from its true pose. Read at the minimum probability, the never-observed cells
-    behind the end wall pull the refined pose back toward where the wall was seen from (the robot
-    seems to have advanced less, the map shrinks); read as the submap's free cells beside its
-    surfaces (the default), the pull is a small fraction of that."""
+    closer refined from its true pose. Read at the minimum probability (the default), the
+    never-observed cells behind the end wall pull the refined pose back toward where the wall was
+    seen from (the robot seems to have advanced less, the map shrinks); where never-observed
+    cells just behind a surface mirror its free side (``refine.unobserved: mirrored``), the pull is
+    smaller (the cells two behind the wall still read at the minimum, so one scan keeps most of it)."""
     from slam2d.config import SlamConfig
     from slam2d.grid.submap import Submap
     from slam2d.matching.refine import refine
@@ -385,11 +359,10 @@ def test_refinement_is_not_pulled_toward_where_a_wall_was_seen_from(scans):
     truth = np.array([2.0, 0.0, 0.0])
     pts = scan_from(2.0, 0.0) - truth[:2]
     r = cfg.refine
-    assert r.unobserved == "surface_free"
     pull = {}
-    for mode in ("min_probability", "surface_free"):
+    for mode in ("min_probability", "mirrored"):
         p, _ = refine(sub.refinement_grid(mode), truth, pts, r.occupied_space_weight, r.translation_weight,
                       r.rotation_weight, r.max_iterations)
         pull[mode] = p[0] - truth[0]
     assert pull["min_probability"] < -0.25 * g.resolution  # back toward where the wall was seen from
-    assert abs(pull["surface_free"]) < 0.25 * abs(pull["min_probability"])
+    assert abs(pull["mirrored"]) < 0.75 * abs(pull["min_probability"])

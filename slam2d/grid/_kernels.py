@@ -126,36 +126,6 @@ def insert_rays(logodds, prob, stamp, scan_id, ox, oy, ends, is_hit, hit_delta, 
 
 
 @njit(cache=True, nogil=True)
-def free_beside_surfaces(logodds, prob, stamp, bins):
-    """The lower median of ``prob`` over the known cells (stamp > 0) likelier free than occupied
-    (log-odds < 0) that have a known 4-neighbour likelier occupied (log-odds > 0): the centre of
-    its bin in a histogram of ``bins`` bins over [0, 0.5]. NaN when there is no such cell."""
-    rows, cols = logodds.shape
-    hist = np.zeros(bins, dtype=np.int64)
-    n = 0
-    for r in range(rows):
-        for c in range(cols):
-            if stamp[r, c] <= 0 or logodds[r, c] >= 0.0:
-                continue
-            if ((r > 0 and stamp[r - 1, c] > 0 and logodds[r - 1, c] > 0.0)
-                    or (r + 1 < rows and stamp[r + 1, c] > 0 and logodds[r + 1, c] > 0.0)
-                    or (c > 0 and stamp[r, c - 1] > 0 and logodds[r, c - 1] > 0.0)
-                    or (c + 1 < cols and stamp[r, c + 1] > 0 and logodds[r, c + 1] > 0.0)):
-                k = int(prob[r, c] * 2.0 * bins)
-                hist[min(max(k, 0), bins - 1)] += 1
-                n += 1
-    if n == 0:
-        return np.nan
-    half = (n + 1) // 2
-    acc = 0
-    for k in range(bins):
-        acc += hist[k]
-        if acc >= half:
-            return (k + 0.5) / (2.0 * bins)
-    return np.nan
-
-
-@njit(cache=True, nogil=True)
 def logodds_to_probability(logodds, known, unknown_value, out):
     rows, cols = logodds.shape
     for r in range(rows):

@@ -304,14 +304,6 @@ class ProbabilityGrid:
             _kernels.logodds_to_probability(self.logodds[r0:r1], known, np.float32(unknown_value), out)
         return out
 
-    def free_beside_surfaces(self) -> float:
-        """How the observed side of a surface reads in this (active) grid: the median probability of
-        the observed cells likelier free than occupied that border a cell likelier occupied
-        (4-neighbourhood), to 1/4096; NaN when there is none (or the grid is frozen)."""
-        if self._known_bits is not None or self.logodds.size == 0:
-            return math.nan
-        return float(_kernels.free_beside_surfaces(self.logodds, self.prob, self.stamp, FREE_BESIDE_BINS))
-
     def known_bounds(self):
         """(r0, r1, c0, c1) slice bounds of the known cells, or None."""
         rows = np.flatnonzero(self.known.any(axis=1))
@@ -345,10 +337,6 @@ class _ScanBatch:
             a -= origin
             a /= resolution
         return self.origins, self.ends
-
-
-#: histogram bins over [0, 0.5] of ``ProbabilityGrid.free_beside_surfaces``
-FREE_BESIDE_BINS = 2048
 
 
 def _grown(old: np.ndarray, shape: tuple[int, int], r0: int, c0: int, fill) -> np.ndarray:

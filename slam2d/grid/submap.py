@@ -33,8 +33,6 @@ class Submap:
     travel: float = 0.0  # path length of the poses inserted since it started [m]
     finished: bool = False
     node_indices: list = field(default_factory=list)
-    #: ``refinement_grid``'s value for never-observed cells and the insertion count it was taken at
-    _unobserved: tuple[float, int] | None = field(default=None, repr=False)
 
     def match_grid(self) -> MatchGrid:
         """The grid scans are scored against: the likelihood field when the submap keeps one, else probabilities."""
@@ -49,31 +47,24 @@ class Submap:
         values = dequantize(g.prob) if g.prob.dtype == np.uint8 else g.prob  # a finished submap keeps uint8
         return MatchGrid(values, g.origin, g.resolution, g.unknown_probability)
 
-    def refinement_grid(self, unobserved: str = "surface_free") -> MatchGrid:
-        """What local SLAM's refinement below cell size climbs: the hit probabilities. With
-        ``unobserved="surface_free"`` a cell no scan has observed reads, when it lies just behind a
-        surface, as that surface's observed free side (mirrored across it: ``matching/_kernels.py``
-        ``_unobserved``), and elsewhere as this submap's free cells beside surfaces typically read
-        (``ProbabilityGrid.free_beside_surfaces``, taken again whenever the submap has half as many
-        insertions again as when it was last taken); ``"min_probability"``: at the grid's lowest
-        probability, as Cartographer reads it.
+    def refinement_grid(self, unobserved: str = "min_probability") -> MatchGrid:
+        """What local SLAM's refinement below cell size climbs: the hit probabilities, a cell no scan
+        has observed at the grid's lowest probability (``"min_probability"``, Cartographer's way);
+        with ``"mirrored"``, such a cell lying just behind a surface reads as that surface's observed
+        free side instead (``matching/_kernels.py`` ``_unobserved``).
 
-        Why: a wall seen from one side has free cells before it and never-observed cells behind it.
-        Read at the lowest probability, the interpolated profile across the wall drops steeper
-        behind it than before it, so its peak lies toward the side the wall was seen from and a
-        scan's points on it are pulled that way: the robot seems to have advanced less than it did
-        toward what it saw from behind. Where cells were seen by many scans the free side sits near
-        the lowest probability too and little changes; where each was seen by a few (scans a metre
-        apart) the free side reads just under 0.5, and the pull shrank whole maps (the sparse logs
-        of ``tools/benchmark.py``; ``tests/test_grid_kernels.py`` shows the pull)."""
+        Why the option: a wall seen from one side has free cells before it and never-observed cells
+        behind it. Read at the lowest probability, the interpolated profile across the wall drops
+        steeper behind it than before it, so its peak lies toward the side the wall was seen from
+        and a scan's points on it are pulled that way: the robot seems to have advanced less than it
+        did toward what it saw from behind. Where cells were seen by many scans the free side sits
+        near the lowest probability too; where each was seen by a few (scans a metre apart) it reads
+        just under 0.5 and the pull shrinks whole maps (``tests/test_grid_kernels.py`` shows it; the
+        README has what mirroring did on the benchmark logs, and why it is not the default)."""
         g = self.grid
-        if unobserved != "surface_free" or self.finished or g.stamp.shape != g.prob.shape:
+        if unobserved != "mirrored" or self.finished or g.stamp.shape != g.prob.shape:
             return self.probability_grid()
-        n = self.num_range_data
-        if self._unobserved is None or n >= max(self._unobserved[1] + 1, 1.5 * self._unobserved[1]):
-            u = g.free_beside_surfaces()
-            self._unobserved = (u if math.isfinite(u) else g.unknown_probability, n)
-        return MatchGrid(g.prob, g.origin, g.resolution, self._unobserved[0], known=g.stamp)
+        return MatchGrid(g.prob, g.origin, g.resolution, g.unknown_probability, known=g.stamp)
 
     def finish(self):
         """Freeze: crop to the observed cells and drop the insertion buffers."""
