@@ -60,7 +60,8 @@ class MatchGrid:
     #: uint8 grid as its ``dequantize``d probabilities, without the float copy (branch-and-bound ignores it)
     scale: float = 1.0
     #: refinement only: cells whose entry here is 0 or less (e.g. an active grid's stamps: never
-    #: updated) read as ``unknown`` too; None: every cell holds its value (the scorers ignore it)
+    #: updated) are never-observed and read by ``_kernels._unobserved``'s rule (a surface's free side
+    #: just behind it, else ``unknown``); None: every cell holds its value (the scorers ignore it)
     known: np.ndarray | None = None
 
     def cells(self, points, pose, angles) -> np.ndarray:
