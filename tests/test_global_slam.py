@@ -234,15 +234,18 @@ def test_loop_score_threshold_follows_how_often_a_submap_was_observed():
 def test_a_nodes_searches_run_cached_stacks_first_with_the_same_outcome(monkeypatch):
     """``_search_node`` searches the submaps whose stacks are cached first (fewer rebuilds when the
     cache holds fewer stacks than a node searches) and commits nearest first: the records, the
-    constraints and the trajectory are those of searching nearest first."""
+    constraints and the trajectory are those of searching nearest first. The cache's floor of one
+    node's working set (the default) rebuilds fewer still, with the same outcome."""
     import slam2d.backend.global_slam as gsm
     from slam2d.backend.loop_closure import StackCache
 
     scans = list(McapLog(BUNDLED))
 
-    def run(cached_first: bool):
+    def run(cached_first: bool, floor: bool):
         # room for about two stacks: a node searches up to three submaps
         monkeypatch.setattr(gsm, "STACK_CACHE_BYTES", 2 * 1024 * 1024)
+        if not floor:
+            monkeypatch.setattr(gsm, "StackCache", lambda max_bytes, min_stacks=1: StackCache(max_bytes, 1))
         if not cached_first:
             monkeypatch.setattr(StackCache, "holds", lambda self, key: False)
         slam = Slam(SlamConfig())
@@ -251,10 +254,11 @@ def test_a_nodes_searches_run_cached_stacks_first_with_the_same_outcome(monkeypa
         recs = [{k: v for k, v in r.items() if k != "search_ms"} for r in slam.global_slam.records]
         return res.poses, recs, slam.global_slam.stacks.builds
 
-    poses_a, recs_a, builds_a = run(True)
-    poses_b, recs_b, builds_b = run(False)
-    assert recs_a == recs_b and np.array_equal(poses_a, poses_b)
-    assert builds_a < builds_b
+    poses_a, recs_a, builds_a = run(True, floor=False)
+    poses_b, recs_b, builds_b = run(False, floor=False)
+    poses_c, recs_c, builds_c = run(True, floor=True)
+    assert recs_a == recs_b == recs_c and np.array_equal(poses_a, poses_b) and np.array_equal(poses_a, poses_c)
+    assert builds_c < builds_a < builds_b
 
 
 def test_local_match_covariances_are_computed_on_global_slam_s_thread(monkeypatch):
