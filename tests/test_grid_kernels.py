@@ -53,7 +53,7 @@ def test_insert_rays_matches_oracle(seed):
     stamp = np.zeros(shape, np.int32)
     flips = np.zeros((1000, 2), np.int32)
     nflips = np.zeros(1, np.int64)
-    _kernels.insert_rays(lo, prob, stamp, 1, o[0], o[1], ends, is_hit, hit, miss, lo_min, lo_max, flips, nflips)
+    _kernels.insert_rays(lo, prob, stamp, 1, o[0], o[1], ends, is_hit, hit, miss, lo_min, lo_max, flips, nflips, 0, -1, 0)
     known = (stamp > 0).astype(np.uint8)
     want, updated = insert_oracle(shape, o, ends, is_hit, hit, miss, lo_min, lo_max, base)
     # dense sampling can miss a cell whose corner a ray only grazes; allow a handful of such cells

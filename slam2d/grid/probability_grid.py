@@ -211,7 +211,7 @@ class ProbabilityGrid:
         n = threads or numba.get_num_threads()
         o, e = batch.to_cells(self.origin, self.resolution)
         _kernels.insert_scans_striped(self.logodds, self.prob, self.stamp, first, o, e, batch.starts, batch.n_hits,
-                                      self.hit_delta, self.miss_delta, self.lo_min, self.lo_max, max(1, int(n)))
+                                      self.hit_delta, self.miss_delta, self.lo_min, self.lo_max, max(1, int(n)), 0)
         if self.field_sigma:
             self.field = self.compute_field()
 
@@ -392,7 +392,7 @@ def insert_scan(grids: list[ProbabilityGrid], origin_xy, hits: np.ndarray, misse
         return
     for g, (cells, o, flips, n_flips) in zip(grids, prepared):
         _kernels.insert_rays(g.logodds, g.prob, g.stamp, g.scan_id, float(o[0]), float(o[1]), cells, is_hit,
-                             g.hit_delta, g.miss_delta, g.lo_min, g.lo_max, flips, n_flips)
+                             g.hit_delta, g.miss_delta, g.lo_min, g.lo_max, flips, n_flips, 0, -1, 0)
         g._field_after(flips, n_flips, stamped=False)
 
 
