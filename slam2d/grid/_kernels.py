@@ -206,6 +206,8 @@ def stamp_field(field, logodds, flips, n, kernel, radius):
 @njit(cache=True, nogil=True)
 def _insert_and_stamp(logodds, prob, stamp, scan_id, ox, oy, ends, is_hit, hit_delta, miss_delta, lo_min, lo_max,
                       flips, n_flips, field, kernel, radius, with_field):
+    # the whole grid as constants here: unlike a call from Python, this path timed the same with the
+    # band passed at run time (intel's insertion 3.7 s either way)
     insert_rays(logodds, prob, stamp, scan_id, ox, oy, ends, is_hit, hit_delta, miss_delta, lo_min, lo_max, flips, n_flips,
                 0, -1, 0)
     if with_field and n_flips[0] <= flips.shape[0]:
