@@ -269,6 +269,10 @@ class Slam:
             t1 = time.perf_counter()
             self._background.join()  # global SLAM catches up with the last scans
             self._stage_ms["global_catch_up"] = [(time.perf_counter() - t1) * 1e3]
+        if gs is not None:
+            t1 = time.perf_counter()
+            gs.final_search()  # before the submaps' grids go: it searches them
+            self._stage_ms["final_search"] = [(time.perf_counter() - t1) * 1e3]
         for sub in getattr(self.tracker, "all_submaps", lambda: [])():
             sub.grid.release()  # local SLAM and loop search are over: the map is built from the nodes
         if gs is not None:

@@ -468,3 +468,48 @@ def test_auto_scores_weakly_observed_submaps_on_their_likelihood_field():
     assert any(r["submap"] in on_field for r in final)  # the field's matches close loops too
     # constraints.jsonl says which grid each search scored
     assert all(r["score_grid"] == ("likelihood_field" if r["submap"] in on_field else "probability") for r in gs.records)
+
+
+def _return_corrected_later(final_search: bool, correct: bool):
+    """The corridor mapped twice (``test_wide_search._global_slam_with_a_return``), the second pass
+    5 m and 40° off in local SLAM's frame, beyond the regular window, and the wide search off: no
+    search closes the loop while the robot is there. Then (``correct``) a loop closed elsewhere,
+    later, puts the second pass where it belongs: a constraint with the true relative pose between
+    a node of each pass."""
+    from test_wide_search import _global_slam_with_a_return
+
+    cfg = SlamConfig(loop_closure={"wide_search": False, "final_search": final_search})
+    gs, first, again = _global_slam_with_a_return(detour=1000.0, cfg=cfg)
+    n0 = len(first) + 1  # the first node of the second pass
+    assert not any(r["accepted"] for r in gs.records)
+    if correct:
+        a, b = 11, n0 + 8
+        gs.graph.add_loop(a, b, between(first[a], again[b - n0]), np.diag([1e-4, 1e-4, 1e-6]),
+                          {"submap": 0, "from_scan": a, "to_scan": b, "accepted": True, "in_final_graph": True})
+    searched = len(gs.records)
+    gs.final_search()
+    return gs, first, again, n0, gs.records[searched:]
+
+
+def test_the_final_search_closes_a_loop_a_later_correction_brought_within_reach():
+    """Once a later loop has moved the second pass by more than the window its nodes were searched in,
+    the final search matches them against the submap now near them: the loops it accepts are the
+    true ones. Nodes that did not move are not searched again, and the search can be switched off."""
+    gs, first, again, n0, new = _return_corrected_later(final_search=True, correct=True)
+    assert new and all(r["search"] == "final" for r in new)
+    accepted = [r for r in new if r["accepted"]]
+    assert len(accepted) >= 3, [r["reason"] for r in new]
+    assert gs.final_searches == len(new) and gs.final_accepted >= len(accepted) > 0
+    for r in accepted:
+        assert r["submap"] == 0 and r["to_scan"] >= n0  # second-pass nodes, against the first pass's submap
+        truth = between(first[r["from_scan"]], again[r["to_scan"] - n0])
+        d = between(truth, np.array(r["relative_pose"]))
+        assert math.hypot(d[0], d[1]) < 0.1 and abs(d[2]) < math.radians(1.0), (r, truth)
+    # the first pass did not move: none of its nodes was searched again
+    assert all(r["to_scan"] >= n0 for r in new)
+    # nothing moved: nothing is stale
+    gs, *_, new = _return_corrected_later(final_search=True, correct=False)
+    assert new == [] and gs.final_searches == 0
+    # switched off
+    gs, *_, new = _return_corrected_later(final_search=False, correct=True)
+    assert new == [] and gs.final_searches == 0

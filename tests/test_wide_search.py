@@ -100,7 +100,7 @@ def _submap(index, segs, true_poses, local_poses):
     return SimpleNamespace(grid=g, local_pose=np.asarray(local_poses[0], float), index=index, node_indices=[])
 
 
-def _global_slam_with_a_return(detour: float):
+def _global_slam_with_a_return(detour: float, cfg=None):
     """Submap 0 maps a corridor; after ``detour`` metres of driving elsewhere the robot maps it again
     (submap 3), but local SLAM's frame has drifted by 5 m and 40° about the corridor's middle."""
     from types import SimpleNamespace
@@ -109,8 +109,7 @@ def _global_slam_with_a_return(detour: float):
     from slam2d.config import SlamConfig
 
     segs = floor_plan()
-    cfg = SlamConfig()
-    gs = GlobalSlam(cfg)
+    gs = GlobalSlam(cfg or SlamConfig())
     first = [np.array([x, 6.0, 0.0]) for x in np.linspace(4.0, 26.0, 23)]
     again = [np.array([x, 6.0, math.pi]) for x in np.linspace(24.0, 8.0, 17)]
     mid = np.array([15.0, 6.0, 0.0])

@@ -11,7 +11,8 @@ move to their global poses. Each search looks as far around the current estimate
 bound between the two places reaches (``drift.py``: local SLAM's drift along what links them in
 the optimized graph, plus every step local SLAM could not trust), at most the regular window;
 where the bound exceeds it, a finished submap is also matched whole against older ones
-(``wide_search.py``). Every rejection's reason is kept in its constraints.jsonl record.
+(``wide_search.py``). Before the last optimization, the final search (``GlobalSlam.final_search``)
+takes again the nodes a later loop moved out of the window they were searched in. Every rejection's reason is kept in its constraints.jsonl record.
 """
 from __future__ import annotations
 
@@ -33,6 +34,8 @@ log = logging.getLogger(__name__)
 #: bytes of branch-and-bound precomputation stacks kept, most recently searched first (``StackCache``);
 #: an evicted stack is rebuilt from its submap's uint8 grid when the submap is searched again.
 STACK_CACHE_BYTES = 16 * 1024 * 1024
+#: the final search repeats while a round closes loops, at most this many rounds
+FINAL_SEARCH_ROUNDS = 3
 
 
 class GlobalSlam:
@@ -68,6 +71,15 @@ class GlobalSlam:
         self._segment_of: dict[int, int] = {}
         self.fresh_starts: list[int] = []  # the nodes local SLAM started afresh with
         self._last_step = None  # the newest node's (submaps, floored map-axes covariance), for the next step
+        # per (node, submap) searched: the node's pose in the submap's grid frame the search started
+        # from, its window (m, rad) and whether it was accepted (``final_search``)
+        self._searched: dict[tuple[int, int], tuple] = {}  # (x, y, θ, lin, ang, accepted)
+        # per sampled node: [its global estimate when it was searched, the smallest window (m, rad)
+        # of any search of it, (first, last) submap it was inserted into and its stretch's first]
+        self._sampled_at: dict[int, list] = {}
+        self.final_searches = 0
+        self.final_accepted = 0
+        self.final_search_seconds = 0.0
         self.wide_searches = 0
         self.wide_accepted = 0
         self.field_submaps = 0  # finished submaps scored on their likelihood field (``add_finished_submap``)
@@ -155,7 +167,7 @@ class GlobalSlam:
                 self.graph.add_intra(a, j, between(self.submap_local[k], local_pose),
                                      cov + self._drift_covariance(self.nodes[j]["path"] - self.nodes[a]["path"]))
         if self.lc.enabled and self._sample(j, local_pose):
-            self._search_node(j)
+            self._search_node(j, submaps)
         self.since_optimize += 1
         if self.since_optimize >= self.lc.optimize_every_n_nodes:
             if len(self.graph.loops) > self.loops_at_last_optimize:
@@ -215,8 +227,11 @@ class GlobalSlam:
             self._search_wide(submap)
 
     # ---- searching
-    def _search_node(self, j):
-        chosen = self._candidate_submaps(self.global_node(j))
+    def _search_node(self, j, submaps):
+        g = self.global_node(j)
+        own = (min(submaps), max(submaps), self._segment_start) if submaps else None
+        self._sampled_at[j] = [g, 0.0, 0.0, own] if own else None
+        chosen = self._candidate_submaps(g)
         # searched with the submaps whose stacks are cached first (a node's nearest submaps recur
         # at the next sampled node, and taken in one fixed order they make the cache rebuild every
         # stack it holds fewer than), committed nearest first: the searches of one node are
@@ -226,7 +241,7 @@ class GlobalSlam:
             rec, loop, _ = done[k]
             self._commit(rec, loop)
 
-    def _candidate_submaps(self, node_g) -> list[int]:
+    def _candidate_submaps(self, node_g, own=None) -> list[int]:
         """The finished submaps a node at ``node_g`` (global) is matched against: at most
         ``max_submaps_per_node``, leaving the newest to local SLAM: those whose content centre lies
         within ``max_constraint_distance``, nearest first, or where there is none, those built from
@@ -234,19 +249,29 @@ class GlobalSlam:
         it has its centre far from where the robot stood, so a node back in that corridor finds it
         only by the second rule (fr-clinic). Where some centres are near, the second rule is not
         consulted: adding its submaps there too found more loops on the sparse logs but cost time
-        and did not make them more accurate (infinite-corridor 0.506 -> 0.522 m)."""
+        and did not make them more accurate (infinite-corridor 0.506 -> 0.522 m).
+
+        ``own``: for a node of the past (``final_search``), the (first, last) submap it was inserted
+        into and the first of its stretch of local SLAM: the submaps next to its own on either side
+        are left out as the newest are for a new node."""
         lc = self.lc
         n = lc.max_submaps_per_node
         newest = max(self.matchers, default=-1)
+
+        def searchable(ks):
+            if own is None:
+                return self._searchable(ks, newest, self._segment_start)
+            return (ks < own[0] - lc.exclude_recent_submaps) | (ks > own[1] + lc.exclude_recent_submaps) | (ks < own[2])
+
         ks, centres = self._submap_centres()
         d = np.hypot(node_g[0] - centres[:, 0], node_g[1] - centres[:, 1])
-        near = self._searchable(ks, newest, self._segment_start) & (d < lc.max_constraint_distance)
+        near = searchable(ks) & (d < lc.max_constraint_distance)
         chosen = [k for _, k in sorted(zip(d[near].tolist(), ks[near].tolist()))[:n]]
         if not chosen:
             tk, starts, track = self._submap_tracks()
             if len(tk):
                 dn = np.minimum.reduceat(np.hypot(track[:, 0] - node_g[0], track[:, 1] - node_g[1]), starts)
-                ok = self._searchable(tk, newest, self._segment_start) & (dn < lc.max_constraint_distance)
+                ok = searchable(tk) & (dn < lc.max_constraint_distance)
                 chosen = [k for _, k in sorted(zip(dn[ok].tolist(), tk[ok].tolist()))[:n]]
         return chosen
 
@@ -316,8 +341,7 @@ class GlobalSlam:
         m = self.matchers[k]
         node = self.nodes[j]
         if initial is None:
-            rel = between(self.global_submap(k), self.global_node(j))
-            initial = compose(m.submap.local_pose, rel)
+            initial = self._initial(k, self.global_node(j))
         lc = self.lc
         if window is None:
             window = self._window(self._middle_node(k), j)
@@ -354,10 +378,19 @@ class GlobalSlam:
                         "in_final_graph": res.reason is None})
             if res.reason is None:
                 loop = (frm, j, relative, cov)
+        self._searched[(j, k)] = (*map(float, initial), lin, ang, loop is not None)
+        at = self._sampled_at.get(j)
+        if at is not None:
+            at[1] = lin if not at[1] else min(at[1], lin)
+            at[2] = ang if not at[2] else min(at[2], ang)
         if defer:
             return rec, loop, res
         self._commit(rec, loop)
         return rec, loop, res
+
+    def _initial(self, k, node_g) -> np.ndarray:
+        """A node at ``node_g`` (global) in submap ``k``'s grid frame, by the current estimates."""
+        return compose(self.matchers[k].submap.local_pose, between(self.global_submap(k), node_g))
 
     def _commit(self, rec, loop):
         if loop is not None:
@@ -473,6 +506,62 @@ class GlobalSlam:
         self.wide_accepted += 2
         self.optimize()  # later searches start from the corrected estimates
 
+    # ---- the final search
+    def final_search(self):
+        """Search again the nodes a later loop moved (``loop_closure.final_search``).
+
+        A node is searched around its estimate of the moment, within the drift bound of the moment.
+        A loop closed later, elsewhere, can move a whole stretch of the trajectory by more than that
+        window (fr-clinic: a hall passed a third time was searched 17 m and 9° from where the loops
+        closed after it put it, against the submaps near that wrong place), and nothing searches
+        it again. So once the run is over, every sampled node whose estimate has left the window of
+        its searches (where it had none, no submap being near, the smallest window a search has:
+        ``margin_window``) is matched against the submaps now near it, except those it was matched
+        with before successfully, or from an estimate whose window holds its current one. The
+        graph is then optimized, and the round repeats while it closes loops, at most
+        ``FINAL_SEARCH_ROUNDS`` times. The new records say ``"search": "final"``."""
+        if not (self.lc.enabled and self.lc.final_search and self.matchers):
+            return
+        t0 = time.perf_counter()
+        for _ in range(FINAL_SEARCH_ROUNDS):
+            if len(self.graph.loops) != self.loops_at_last_optimize:
+                self.optimize()
+            before = len(self.graph.loops)
+            todo = self._stale_pairs()
+            for j, k in todo:
+                rec, loop, _ = self._search(k, j, defer=True)
+                rec["search"] = "final"
+                self._commit(rec, loop)
+            self.final_searches += len(todo)
+            self.final_accepted += len(self.graph.loops) - before
+            log.info("final search: %d node-submap pairs, %d loops", len(todo), len(self.graph.loops) - before)
+            if len(self.graph.loops) == before:
+                break
+        self.final_search_seconds += time.perf_counter() - t0
+
+    def _stale_pairs(self) -> list[tuple[int, int]]:
+        """(node, submap) pairs whose search the estimates have outdated (``final_search``)."""
+        out = []
+        for j, at in self._sampled_at.items():
+            if at is None:
+                continue
+            g0, lin, ang, own = at
+            # never searched (no submap was near): the smallest window any search has
+            lin, ang = lin or self.lc.margin_window, ang or math.radians(self.lc.margin_window_deg)
+            g = self.global_node(j)
+            if math.hypot(g[0] - g0[0], g[1] - g0[1]) <= lin and abs(math.remainder(g[2] - g0[2], 2 * math.pi)) <= ang:
+                continue  # still inside the window it was searched in
+            for k in self._candidate_submaps(g, own):
+                prev = self._searched.get((j, k))
+                if prev is not None:
+                    x, y, th, w_lin, w_ang, accepted = prev
+                    now = self._initial(k, g)
+                    if accepted or (max(abs(now[0] - x), abs(now[1] - y)) <= w_lin
+                                    and abs(math.remainder(now[2] - th, 2 * math.pi)) <= w_ang):
+                        continue
+                out.append((j, k))
+        return out
+
     # ---- optimization
     def optimize(self, final: bool = False):
         if not self.node_order:
@@ -563,6 +652,8 @@ class GlobalSlam:
             "removed_gnc": self.gnc_removed,
             "removed_after_optimization": len(self.graph.removed) - self.consistency_removed - self.gnc_removed,
             "in_final_graph": final, "wide_searches": self.wide_searches, "wide_accepted": self.wide_accepted,
+            "final_searches": self.final_searches, "final_accepted": self.final_accepted,
+            "final_search_s": round(self.final_search_seconds, 3),
             "search_total_s": round(self.search_seconds, 3), "stack_builds": self.stacks.builds,
             "search_mean_ms": round(1e3 * self.search_seconds / self.searches, 3) if self.searches else None,
             "optimizations": self.optimizations, "optimize_total_s": round(self.optimize_seconds, 3),
