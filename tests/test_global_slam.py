@@ -335,6 +335,11 @@ def test_a_node_near_a_submaps_track_searches_it_when_no_centre_is_near(monkeypa
     # three centres near: they are the node's submaps, nearest first
     centres([(30, 0), (2, 10), (0, 4), (1, -6), (0, 0.2), (0, 0.3)])
     assert gs._candidate_submaps(node) == [2, 3, 1]
+    # a node of the past (the final search), inserted into submaps 1 and 2: the submaps within two
+    # of its own are local SLAM's on either side, later ones are fair game
+    assert gs._candidate_submaps(node, own=(1, 2, 0)) == [5]
+    assert gs._candidate_submaps(node, own=(4, 5, 0)) == [1]
+    assert gs._candidate_submaps(node, own=(5, 5, 0)) == [2, 1]
     # no centre near: the nearest tracks decide (submap 1's at 9.5 m; 2's and 3's beyond reach)
     centres([(30, 0), (30, 10), (30, 20), (30, 30), (0, 0.2), (0, 0.3)])
     assert gs._candidate_submaps(node) == [0, 1]
