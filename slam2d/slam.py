@@ -255,7 +255,8 @@ class Slam:
         return self.finish()
 
     def finish(self) -> SlamResult:
-        """Final optimization, map, final refinement and health; the Slam takes no scans after this."""
+        """Final search (``GlobalSlam.final_search``), final optimization, map, final refinement and
+        health; the Slam takes no scans after this."""
         if self._finished:
             raise UsageError("finish called twice")
         if not self._times:
