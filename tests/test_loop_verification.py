@@ -5,7 +5,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from slam2d.backend.consistency import ConsistencyParams, candidate_pairs, inconsistent, pair_tests
+from slam2d.backend.consistency import ConsistencyParams, candidate_pairs, fresh_pairs, inconsistent, pair_tests
 from slam2d.backend.loop_closure import LoopMatch, SubmapMatcher
 from slam2d.config import SlamConfig
 from slam2d.eval.loops import agrees
@@ -197,6 +197,24 @@ def test_pair_tests_equal_testing_every_pair():
         assert len(t.src) == 2 * np.count_nonzero(np.triu(ref))  # each tested pair once each way, nothing else
         i, k = candidate_pairs(pa, p.max_chain)
         assert np.all(i < k) and len(set(zip(i.tolist(), k.tolist()))) == len(i)
+
+
+def test_fresh_pairs_are_the_candidate_pairs_that_touch_a_fresh_loop():
+    """Found from the fresh loops' windows alone, they are exactly the pairs ``candidate_pairs`` lists
+    with a fresh loop in them, each once: with ties, pairs exactly at the limit, no fresh loop, all."""
+    rng = np.random.default_rng(5)
+    for trial in range(300):
+        n = int(rng.integers(0, 80))
+        pa = np.round(rng.uniform(0, 120, n), int(rng.integers(0, 3)))
+        if n > 3:
+            pa[1], pa[2] = pa[0], pa[0] + 30.0
+        fresh = rng.uniform(size=n) < [0.0, 0.1, 0.5, 1.0][trial % 4]
+        i, k = candidate_pairs(pa, 30.0)
+        m = fresh[i] | fresh[k]
+        a, b = fresh_pairs(pa, fresh, 30.0)
+        got = list(zip(a.tolist(), b.tolist()))
+        assert np.all(a < b) and len(got) == len(set(got)), trial
+        assert set(got) == set(zip(i[m].tolist(), k[m].tolist())), trial
 
 
 def test_pair_cache_equals_testing_the_current_loops_afresh():

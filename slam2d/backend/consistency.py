@@ -67,6 +67,31 @@ def candidate_pairs(pa: np.ndarray, max_chain: float) -> tuple[np.ndarray, np.nd
     return np.minimum(i, k), np.maximum(i, k)
 
 
+def fresh_pairs(pa: np.ndarray, fresh: np.ndarray, max_chain: float) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs of ``candidate_pairs`` that involve a loop marked ``fresh``, found from those loops
+    alone: for each, the loops whose anchors lie within ``max_chain`` of its own along the path (a
+    window of the loops sorted by path), each pair once (i < k). Its cost follows the fresh loops'
+    neighbourhoods, not every pair of loops, so a cache that tests only new pairs stays cheap as the
+    loops grow in number."""
+    n = len(pa)
+    f = np.flatnonzero(fresh)
+    if n < 2 or not len(f):
+        none = np.zeros(0, dtype=np.int64)
+        return none, none
+    order = np.argsort(pa, kind="stable")
+    s = pa[order]
+    reach = max_chain * (1.0 + 1e-9) + 1e-9  # as ``candidate_pairs``: no pair the test can reach is missed
+    lo = np.searchsorted(s, pa[f] - reach, side="left")
+    hi = np.searchsorted(s, pa[f] + reach, side="right")
+    count = hi - lo
+    a = np.repeat(f, count)
+    b = order[np.arange(count.sum()) - np.repeat(np.cumsum(count) - count - lo, count)]
+    # not with itself, and a pair of two fresh loops once (from its smaller index)
+    keep = (a != b) & ~(fresh[b] & (b < a))
+    i, k = a[keep], b[keep]
+    return np.minimum(i, k), np.maximum(i, k)
+
+
 def pair_tests(rel: np.ndarray, la: np.ndarray, lj: np.ndarray, pa: np.ndarray, pj: np.ndarray,
                p: ConsistencyParams) -> PairTests:
     """Test every pair of loops whose two local legs are short enough (module docstring).
@@ -117,9 +142,7 @@ class PairCache:
         if n < 2:
             return _both_ways(n)
         if ids[-1] > self.seen:
-            i, k = candidate_pairs(pa, self.p.max_chain)
-            fresh = np.maximum(ids[i], ids[k]) > self.seen
-            i, k = i[fresh], k[fresh]
+            i, k = fresh_pairs(pa, ids > self.seen, self.p.max_chain)
             t = pair_tests_of(i, k, rel, la, lj, pa, pj, self.p)
             self.a = np.concatenate([self.a, ids[t[0]]])
             self.b = np.concatenate([self.b, ids[t[1]]])
@@ -160,4 +183,4 @@ def inconsistent(t: PairTests, scores: np.ndarray, min_support: int = 0) -> list
     return removed
 
 
-__all__ = ["ConsistencyParams", "PairCache", "PairTests", "candidate_pairs", "pair_tests", "inconsistent"]
+__all__ = ["ConsistencyParams", "PairCache", "PairTests", "candidate_pairs", "fresh_pairs", "pair_tests", "inconsistent"]

@@ -102,6 +102,7 @@ class GlobalSlam:
         self.gnc_removed = 0
         self.drift = DriftBound(lc.consistency_drift, math.radians(lc.consistency_drift_deg))
         # loop pairs tested for consistency, each once (``consistency.PairCache``)
+        self._loop_rows: dict[int, tuple] = {}  # per loop factor: ``_check_consistency``'s row of it
         self._pairs = PairCache(ConsistencyParams(lc.consistency_max_chain, lc.consistency_translation,
                                                   lc.consistency_drift, math.radians(lc.consistency_rotation_deg),
                                                   math.radians(lc.consistency_drift_deg), lc.consistency_min_support))
@@ -610,12 +611,14 @@ class GlobalSlam:
         if len(loops) < 2 and self.lc.consistency_min_support == 0:
             return
         p = self._pairs.p
-        rel = np.array([f.relative for f in loops]).reshape(-1, 3)
-        la = np.array([self.nodes[f.anchor]["local"] for f in loops]).reshape(-1, 3)
-        lj = np.array([self.nodes[f.node]["local"] for f in loops]).reshape(-1, 3)
-        pa = np.array([self.nodes[f.anchor]["path"] for f in loops])
-        pj = np.array([self.nodes[f.node]["path"] for f in loops])
-        scores = np.array([f.record.get("score") or 0.0 for f in loops])
+        rows = self._loop_rows  # what the test reads of a loop never changes: one row per loop, made once
+        for f in loops:
+            if f.index not in rows:
+                a, j = self.nodes[f.anchor], self.nodes[f.node]
+                rows[f.index] = (*map(float, f.relative), *map(float, a["local"]), *map(float, j["local"]),
+                                 a["path"], j["path"], f.record.get("score") or 0.0)
+        m = np.array([rows[f.index] for f in loops], dtype=float).reshape(-1, 12)
+        rel, la, lj, pa, pj, scores = m[:, 0:3], m[:, 3:6], m[:, 6:9], m[:, 9], m[:, 10], m[:, 11]
         ids = np.array([f.index for f in loops], dtype=np.int64)
         for i, reason in inconsistent(self._pairs.tests(ids, rel, la, lj, pa, pj), scores, p.min_support):
             self.graph.remove_loop(loops[i], reason)
