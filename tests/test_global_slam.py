@@ -475,7 +475,7 @@ def test_auto_scores_weakly_observed_submaps_on_their_likelihood_field():
     assert all(r["score_grid"] == ("likelihood_field" if r["submap"] in on_field else "probability") for r in gs.records)
 
 
-def _return_corrected_later(final_search: bool, correct: bool):
+def _return_corrected_later(final_search: bool, correct: bool, budget=None):
     """The corridor mapped twice (``test_wide_search._global_slam_with_a_return``), the second pass
     5 m and 40° off in local SLAM's frame, beyond the regular window, and the wide search off: no
     search closes the loop while the robot is there. Then (``correct``) a loop closed elsewhere,
@@ -492,6 +492,9 @@ def _return_corrected_later(final_search: bool, correct: bool):
         gs.graph.add_loop(a, b, between(first[a], again[b - n0]), np.diag([1e-4, 1e-4, 1e-6]),
                           {"submap": 0, "from_scan": a, "to_scan": b, "accepted": True, "in_final_graph": True})
     searched = len(gs.records)
+    assert gs.searches == searched
+    if budget is not None:
+        gs.searches = budget  # as if the run had made only this many searches
     gs.final_search()
     return gs, first, again, n0, gs.records[searched:]
 
@@ -518,3 +521,20 @@ def test_the_final_search_closes_a_loop_a_later_correction_brought_within_reach(
     # switched off
     gs, *_, new = _return_corrected_later(final_search=False, correct=True)
     assert new == [] and gs.final_searches == 0
+
+
+def test_the_final_search_makes_no_more_searches_than_the_run_made_the_most_stale_first():
+    """A run whose every stretch a late loop moved would be searched all over again at the end: the
+    final search is bounded by the searches the run made, and spends them on the nodes that moved
+    farthest beyond their windows."""
+    gs, *_ = _return_corrected_later(final_search=True, correct=True)
+    unbounded = gs.final_searches
+    gs, *_, new = _return_corrected_later(final_search=True, correct=True, budget=3)
+    assert unbounded > 3 and gs.final_searches == len(new) == 3
+    # the three it searched are the three most stale pairs of its first round
+    gs0, *_ = _return_corrected_later(final_search=False, correct=True)
+    gs0.optimize()
+    stale = gs0._stale_pairs()
+    assert len(stale) > 3
+    top = sorted(stale, key=lambda t: (-t[0], t[1], t[2]))[:3]
+    assert {(r["to_scan"], r["submap"]) for r in new} == {(j, k) for _, j, k in top}

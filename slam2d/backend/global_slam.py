@@ -520,16 +520,26 @@ class GlobalSlam:
         ``margin_window``) is matched against the submaps now near it, except those it was matched
         with before successfully, or from an estimate whose window holds its current one. The
         graph is then optimized, and the round repeats while it closes loops, at most
-        ``FINAL_SEARCH_ROUNDS`` times. The new records say ``"search": "final"``."""
+        ``FINAL_SEARCH_ROUNDS`` times. The new records say ``"search": "final"``.
+
+        Its cost is bounded by the run's own: it makes at most as many searches as the run made
+        before it, the nodes that moved farthest beyond their window first (a long log whose every
+        stretch a late loop moved would otherwise be searched all over again at the end)."""
         if not (self.lc.enabled and self.lc.final_search and self.matchers):
             return
         t0 = time.perf_counter()
+        budget = self.searches
         for _ in range(FINAL_SEARCH_ROUNDS):
             if len(self.graph.loops) != self.loops_at_last_optimize:
                 self.optimize()
             before = len(self.graph.loops)
             todo = self._stale_pairs()
-            for j, k in todo:
+            left = budget - self.final_searches
+            if len(todo) > left:  # the most stale, searched in the order they came
+                log.info("final search: %d stale node-submap pairs, searching the %d most stale", len(todo), left)
+                keep = sorted(range(len(todo)), key=lambda i: (-todo[i][0], todo[i][1], todo[i][2]))[:left]
+                todo = [todo[i] for i in sorted(keep)]
+            for _, j, k in todo:
                 rec, loop, _ = self._search(k, j, defer=True)
                 rec["search"] = "final"
                 self._commit(rec, loop)
@@ -540,8 +550,10 @@ class GlobalSlam:
                 break
         self.final_search_seconds += time.perf_counter() - t0
 
-    def _stale_pairs(self) -> list[tuple[int, int]]:
-        """(node, submap) pairs whose search the estimates have outdated (``final_search``)."""
+    def _stale_pairs(self) -> list[tuple[float, int, int]]:
+        """(staleness, node, submap) of the pairs whose search the estimates have outdated
+        (``final_search``), node after node, each node's nearest submap first; staleness: how many
+        times its window the node's estimate moved."""
         out = []
         for j, at in self._sampled_at.items():
             if at is None:
@@ -550,8 +562,10 @@ class GlobalSlam:
             # never searched (no submap was near): the smallest window any search has
             lin, ang = lin or self.lc.margin_window, ang or math.radians(self.lc.margin_window_deg)
             g = self.global_node(j)
-            if math.hypot(g[0] - g0[0], g[1] - g0[1]) <= lin and abs(math.remainder(g[2] - g0[2], 2 * math.pi)) <= ang:
+            dxy, dth = math.hypot(g[0] - g0[0], g[1] - g0[1]), abs(math.remainder(g[2] - g0[2], 2 * math.pi))
+            if dxy <= lin and dth <= ang:
                 continue  # still inside the window it was searched in
+            moved = max(dxy / lin, dth / ang)
             for k in self._candidate_submaps(g, own):
                 prev = self._searched.get((j, k))
                 if prev is not None:
@@ -560,7 +574,7 @@ class GlobalSlam:
                     if accepted or (max(abs(now[0] - x), abs(now[1] - y)) <= w_lin
                                     and abs(math.remainder(now[2] - th, 2 * math.pi)) <= w_ang):
                         continue
-                out.append((j, k))
+                out.append((moved, j, k))
         return out
 
     # ---- optimization
