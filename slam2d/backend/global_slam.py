@@ -12,7 +12,8 @@ bound between the two places reaches (``drift.py``: local SLAM's drift along wha
 the optimized graph, plus every step local SLAM could not trust), at most the regular window;
 where the bound exceeds it, a finished submap is also matched whole against older ones
 (``wide_search.py``). Before the last optimization, the final search (``GlobalSlam.final_search``)
-takes again the nodes a later loop moved out of the window they were searched in. Every rejection's reason is kept in its constraints.jsonl record.
+takes again the nodes a later loop moved out of the window they were searched in. Every
+rejection's reason is kept in its constraints.jsonl record.
 """
 from __future__ import annotations
 
