@@ -227,7 +227,8 @@ class RerunObserver(Observer):
             rr.log("/metrics/score/loop", rr.Scalars(record["score"]))
         level = rr.TextLogLevel.INFO if record["accepted"] else rr.TextLogLevel.DEBUG
         what = f"accepted, score {record['score']:.3f}" if record["accepted"] else record["reason"]
-        rr.log("/events", rr.TextLog(f"loop candidate scan {record['to_scan']} vs submap {record['submap']}: {what}",
+        how = f" [{record['search']}]" if record.get("search") else ""  # the wide or the final search
+        rr.log("/events", rr.TextLog(f"loop candidate scan {record['to_scan']} vs submap {record['submap']}{how}: {what}",
                                      level=level))
 
     def on_optimized(self, global_slam) -> None:
