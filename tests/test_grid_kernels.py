@@ -366,3 +366,63 @@ def test_refinement_is_not_pulled_toward_where_a_wall_was_seen_from(scans):
         pull[mode] = p[0] - truth[0]
     assert pull["min_probability"] < -0.25 * g.resolution  # back toward where the wall was seen from
     assert abs(pull["mirrored"]) < 0.75 * abs(pull["min_probability"])
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_stamped_bounds_and_frozen_cells_oracle(seed):
+    """``stamped_bounds`` equals the bounds of ``np.argwhere(stamp > 0)``; ``frozen_cells`` equals
+    ``quantize`` of the crop (half steps included, rounded to even) and ``np.packbits`` of its known
+    mask, for widths that are and are not whole bytes and crops that touch every border."""
+    from slam2d.grid.probability_grid import quantize
+
+    rng = np.random.default_rng(seed)
+    rows, cols = int(rng.integers(1, 40)), int(rng.integers(1, 40))
+    stamp = np.where(rng.random((rows, cols)) < [0.0, 0.002, 0.05, 0.6][seed], rng.integers(1, 9, (rows, cols)), 0)
+    stamp = stamp.astype(np.int32)
+    got = _kernels.stamped_bounds(stamp)
+    rc = np.argwhere(stamp > 0)
+    if len(rc) == 0:
+        assert got == (0, 0, 0, 0)
+    else:
+        assert got == (rc[:, 0].min(), rc[:, 0].max() + 1, rc[:, 1].min(), rc[:, 1].max() + 1)
+    steps = rng.integers(0, 511, (rows, cols)) / 2.0  # whole and half steps of 1/255
+    prob = np.clip(steps / 255.0, 0.0, 1.0).astype(np.float32)
+    prob.flat[rng.integers(0, prob.size, 5)] = rng.random(5).astype(np.float32)
+    for r0, r1, c0, c1 in [(0, rows, 0, cols), (rows // 3, rows, cols // 4, cols - cols // 5 or cols)]:
+        q, bits = _kernels.frozen_cells(prob, stamp, r0, r1, c0, c1)
+        np.testing.assert_array_equal(q, quantize(prob[r0:r1, c0:c1]))
+        np.testing.assert_array_equal(bits, np.packbits(stamp[r0:r1, c0:c1] > 0, axis=1))
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.float32])
+def test_occupied_field_oracle(dtype):
+    """``occupied_field`` against plain numpy: around every known cell above ``half`` the kernel is
+    laid with ``np.maximum``; at uint8 it equals ``quantize`` of the float field (quantizing is
+    monotone), which is what a finished submap's likelihood field is."""
+    from slam2d.grid.probability_grid import quantize
+
+    rng = np.random.default_rng(3)
+    rows, cols, radius = 37, 29, 3
+    kernel = field_kernel(0.1, 0.05, radius)
+    prob = rng.random((rows, cols)).astype(np.float32)
+    prob[0, 0] = prob[rows - 1, cols - 1] = 0.9  # surfaces on the corners
+    known = rng.random((rows, cols)) < 0.8
+    known[0, 0] = known[rows - 1, cols - 1] = True
+    occ = known & (prob > 0.85)
+    want = np.zeros((rows + 2 * radius, cols + 2 * radius), np.float32)
+    for r, c in np.argwhere(occ):
+        np.maximum(want[r:r + 2 * radius + 1, c:c + 2 * radius + 1], kernel, out=want[r:r + 2 * radius + 1, c:c + 2 * radius + 1])
+    want = want[radius:radius + rows, radius:radius + cols]
+    bits = np.packbits(known, axis=1)
+    if dtype == np.uint8:
+        got = _kernels.occupied_field(quantize(prob), bits, np.uint8(np.round(0.85 * 255)), quantize(kernel), radius)
+        occ_q = known & (quantize(prob) > np.round(0.85 * 255))
+        want_q = np.zeros((rows + 2 * radius, cols + 2 * radius), np.float32)
+        for r, c in np.argwhere(occ_q):
+            sl = (slice(r, r + 2 * radius + 1), slice(c, c + 2 * radius + 1))
+            np.maximum(want_q[sl], kernel, out=want_q[sl])
+        np.testing.assert_array_equal(got, quantize(want_q[radius:radius + rows, radius:radius + cols]))
+    else:
+        got = _kernels.occupied_field(prob, bits, np.float32(0.85), kernel, radius)
+        np.testing.assert_array_equal(got, want)
+    assert got.dtype == dtype and got[0, 0] == got.max() and (got == 0).any()

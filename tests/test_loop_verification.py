@@ -109,7 +109,7 @@ def test_likelihood_field_equals_a_distance_transform():
         prob[0, 5] = prob[59, 89] = 200  # surfaces on the borders
         known = (rng.random((60, 90)) < 0.9).astype(np.uint8)
         known[0, 5] = known[59, 89] = 1
-        grid = SimpleNamespace(prob=prob, known=known, resolution=res)
+        grid = SimpleNamespace(prob=prob, known=known, resolution=res, known_bits=lambda k=known: np.packbits(k, axis=1))
         occ = (known > 0) & (prob.astype(np.float32) / 255.0 > 0.5)
         d = distance_transform_edt(~occ) * res
         radius = math.ceil(3 * sigma / res)  # whole cells, as local SLAM's field (ProbabilityGrid.field_radius)
@@ -118,6 +118,49 @@ def test_likelihood_field_equals_a_distance_transform():
         assert np.abs(got - np.round(want * 255).astype(int)).max() <= 1
         assert got[0, 5] == 255 and got[59, 89] == 255
         assert (got[occ] == 255).all() and (got[d > radius * res + 1e-9] == 0).all()
+
+
+def test_known_centre_is_the_mean_of_the_known_cells():
+    """A matcher's centre (counts per row and per column) equals the mean of ``np.argwhere`` of the
+    known cells, to the last bit, on an active and on a finished grid; an empty grid gives its origin."""
+    from slam2d.backend.loop_closure import _known_centre
+
+    rng = np.random.default_rng(12)
+    g = ProbabilityGrid(0.05)
+    for _ in range(15):
+        o = rng.uniform(-1, 1, 2)
+        g.insert(o, o + rng.uniform(-3, 3, (40, 2)))
+    for frozen in (False, True):
+        if frozen:
+            g.freeze(*g.known_bounds())
+        k = np.argwhere(g.known > 0)
+        assert np.array_equal(_known_centre(g), g.origin + (k.mean(axis=0)[::-1] + 0.5) * g.resolution)
+    empty = ProbabilityGrid(0.05, origin=(1.0, 2.0), shape=(4, 5))
+    assert np.array_equal(_known_centre(empty), [1.0, 2.0])
+
+
+def test_stack_cache_builds_into_the_buffer_it_evicted():
+    """With room for one stack, the stack evicted for a new one is the memory the build after it
+    writes into (submaps of the same size); the levels are those of a fresh build."""
+    from slam2d.backend.loop_closure import StackCache
+    from slam2d.matching.search import PrecomputationStack
+
+    segs = floor_plan()
+    subs = [submap(segs, [np.array([x, 0.0, 0.0])]) for x in (0.0, 0.0, 0.0)]
+    for i, s in enumerate(subs):
+        s.index = i
+    cache = StackCache(0, min_stacks=1)
+    matchers = [SubmapMatcher(s, 4, cache) for s in subs]
+    first = matchers[0].stack
+    buf = first.buffer
+    matchers[1].stack  # evicts the first: its buffer is kept
+    third = matchers[2].stack
+    assert third.buffer is buf and cache.builds == 3
+    fresh = PrecomputationStack(matchers[2].source_grid(), 4)
+    for d in range(5):
+        np.testing.assert_array_equal(third.level(d), fresh.level(d))
+    cache.clear()
+    assert cache._spare is None
 
 
 def test_a_submap_seen_by_few_scans_is_matched_on_its_likelihood_field():

@@ -173,13 +173,19 @@ def test_stack_cache_keeps_the_most_recent_and_rebuilds_identically():
             g.insert(np.zeros(2), rng.uniform(-2, 2, (80, 2)))
         subs.append(SimpleNamespace(index=k, grid=g, local_pose=np.zeros(3)))
     ms = [SubmapMatcher(s, 3, StackCache(0)) for s in subs]
-    cache = StackCache(ms[1].stack.nbytes + ms[2].stack.nbytes)  # room for the stacks of submaps 1 and 2
+    sizes = [m.stack.nbytes for m in ms]
+    # room for two stacks, but not three; an evicted stack's buffer is kept for the next build
+    cache = StackCache(2 * max(sizes))
+    assert sum(sizes) > 2 * max(sizes)
     for m in ms:
         m.cache = cache
     first = ms[0].stack.data.copy()
+    buf0 = ms[0].stack.buffer
     ms[1].stack, ms[2].stack  # evicts submap 0's stack
     assert cache.builds == 3 and len(cache._stacks) == 2 and 0 not in cache._stacks
+    assert cache._spare is buf0
     np.testing.assert_array_equal(ms[0].stack.data, first)  # rebuilt, identical
+    assert ms[0].stack.buffer is buf0  # into the memory it had
     assert cache.builds == 4
     ms[0].stack  # cached now
     assert cache.builds == 4

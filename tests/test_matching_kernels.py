@@ -581,3 +581,27 @@ def test_scaled_uint8_grid_scores_and_refines_as_its_dequantized_copy(seed):
         b = refine(dense, np.array(pose), pts, 1.0, 1.0, 1.0, 20)
         np.testing.assert_array_equal(a[0], b[0])
         assert a[1] == b[1]
+
+
+def test_precomputation_stack_written_into_a_given_buffer():
+    """A stack built into a spare buffer (an evicted stack's) holds the same levels as a fresh one and
+    uses that memory; a buffer too small, or more than twice the size needed, is not used."""
+    rng = np.random.default_rng(8)
+    values = (rng.random((19, 23)) * 255).astype(np.uint8)
+    grid = MatchGrid(values, np.zeros(2), 0.05, 40.0)
+    fresh = PrecomputationStack(grid, 4)
+    need = fresh.buffer.nbytes
+    spare = np.full(need + 100, 7, dtype=np.uint8)  # stale content: every level must be written
+    reused = PrecomputationStack(grid, 4, buffer=spare)
+    assert reused.buffer is spare and np.shares_memory(reused.data, spare)
+    for d in range(5):
+        np.testing.assert_array_equal(reused.level(d), fresh.level(d))
+    assert reused.nbytes == spare.nbytes  # the whole buffer counts against a cache's budget
+    for size in (need - 1, 2 * need + 1):
+        other = np.zeros(size, dtype=np.uint8)
+        assert not np.shares_memory(PrecomputationStack(grid, 4, buffer=other).data, other)
+    floats = MatchGrid(rng.random((19, 23)).astype(np.float32), np.zeros(2), 0.05, 0.1)
+    f_fresh = PrecomputationStack(floats, 3)
+    f_reused = PrecomputationStack(floats, 3, buffer=np.zeros(f_fresh.buffer.nbytes, dtype=np.uint8))
+    for d in range(4):
+        np.testing.assert_array_equal(f_reused.level(d), f_fresh.level(d))

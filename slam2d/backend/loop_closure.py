@@ -90,6 +90,7 @@ class StackCache:
         self.min_stacks = max(1, int(min_stacks))
         self._stacks: OrderedDict[int, PrecomputationStack] = OrderedDict()
         self._probabilities: dict[int, np.ndarray] = {}
+        self._spare: np.ndarray | None = None  # the largest evicted stack's buffer, until a build reuses it
         self.builds = 0
 
     def get(self, matcher: "SubmapMatcher") -> PrecomputationStack:
@@ -98,12 +99,15 @@ class StackCache:
         if st is not None:
             self._stacks.move_to_end(key)
             return st
-        st = PrecomputationStack(matcher.source_grid(), matcher.depth)
+        spare, self._spare = self._spare, None
+        st = PrecomputationStack(matcher.source_grid(), matcher.depth, buffer=spare)
         self.builds += 1
         self._stacks[key] = st
         while len(self._stacks) > self.min_stacks and self.nbytes > self.max_bytes:
-            old, _ = self._stacks.popitem(last=False)
+            old, gone = self._stacks.popitem(last=False)
             self._probabilities.pop(old, None)
+            if self._spare is None or gone.buffer.nbytes > self._spare.nbytes:
+                self._spare = gone.buffer  # the next build writes into it: no fresh memory to fault in
         return st
 
     def probabilities(self, matcher: "SubmapMatcher") -> np.ndarray:
@@ -130,6 +134,7 @@ class StackCache:
         """Drop every stack (a later search rebuilds its own)."""
         self._stacks.clear()
         self._probabilities.clear()
+        self._spare = None
 
 
 class SubmapMatcher:
@@ -146,8 +151,7 @@ class SubmapMatcher:
             f = likelihood_field(g, field_sigma)
             self._field = (zlib.compress(f.tobytes(), 1), f.shape)
         self.cache = StackCache(0) if cache is None else cache  # alone: keeps its one stack
-        known = np.argwhere(g.known > 0)
-        self.center_local = (g.origin + (known.mean(axis=0)[::-1] + 0.5) * g.resolution) if len(known) else g.origin
+        self.center_local = _known_centre(g)
 
     @property
     def scores_field(self) -> bool:
@@ -274,19 +278,30 @@ def probability_self_score(submap, points_and_poses) -> float:
     return _self_score(grid, points_and_poses)
 
 
+def _known_centre(g) -> np.ndarray:
+    """Mean centre of a grid's known cells, in its frame (its origin when it has none), from the
+    counts per row and per column (exact integer sums: the mean of ``np.argwhere`` to the last bit)."""
+    k = g.known
+    n = int(np.count_nonzero(k))
+    if n == 0:
+        return g.origin
+    rows = np.count_nonzero(k, axis=1) @ np.arange(k.shape[0], dtype=np.int64)
+    cols = np.count_nonzero(k, axis=0) @ np.arange(k.shape[1], dtype=np.int64)
+    return g.origin + (np.array([cols, rows], dtype=float) / n + 0.5) * g.resolution
+
+
 def likelihood_field(grid, sigma: float) -> np.ndarray:
     """A finished grid's likelihood field as uint8 (× 255): per cell, exp(−d²/2σ²) of the distance d
     between its centre and the nearest cell likelier occupied than free, zero beyond 3σ (rounded up
     to whole cells) — local SLAM's field (``ProbabilityGrid``), stamped by the same kernel."""
     p = grid.prob
     half = 127 if p.dtype == np.uint8 else 0.5  # uint8 127 is 0.498, 128 is 0.502
-    occ = (grid.known > 0) & (p > half)
+    bits = grid.known_bits()
     radius = max(1, int(math.ceil(3.0 * sigma / grid.resolution)))
-    field = np.zeros(occ.shape, dtype=np.float32)
-    cells = np.argwhere(occ).astype(np.int32)  # the dtype of local SLAM's flips: one compiled kernel
-    _grid_kernels.stamp_field(field, occ.astype(np.float32), cells, len(cells), field_kernel(sigma, grid.resolution, radius),
-                              radius)
-    return quantize(field)
+    # stamped at uint8: quantizing is monotone, so the largest quantized kernel value over the
+    # occupied cells near a cell is the quantized largest value, and no float field is made
+    return _grid_kernels.occupied_field(p, bits, p.dtype.type(half), quantize(field_kernel(sigma, grid.resolution, radius)),
+                                        radius)
 
 
 def separated_margin(scores: np.ndarray, lin: int, ang: int) -> float:

@@ -254,3 +254,69 @@ def insert_scans_striped(logodds, prob, stamp, first_id, origins, ends, starts, 
             is_hit[:n_hits[sc]] = True
             insert_rays(logodds, prob, stamp, first_id + sc, origins[sc, 0], origins[sc, 1], ends[a:b], is_hit,
                         hit_delta, miss_delta, lo_min, lo_max, no_flips, count, r0, r1, row_offset)
+
+
+@njit(cache=True, nogil=True)
+def stamped_bounds(stamp):
+    """(r0, r1, c0, c1): slice bounds of the cells whose stamp is above 0 (observed); (0, 0, 0, 0)
+    when there are none."""
+    rows, cols = stamp.shape
+    r0, r1, c0, c1 = rows, 0, cols, 0
+    for r in range(rows):
+        first = -1
+        for c in range(cols):
+            if stamp[r, c] > 0:
+                first = c
+                break
+        if first < 0:
+            continue
+        last = first
+        for c in range(cols - 1, first, -1):
+            if stamp[r, c] > 0:
+                last = c
+                break
+        r0 = min(r0, r)
+        r1 = r + 1
+        c0 = min(c0, first)
+        c1 = max(c1, last + 1)
+    if r1 == 0:
+        return 0, 0, 0, 0
+    return r0, r1, c0, c1
+
+
+@njit(cache=True, nogil=True)
+def frozen_cells(prob, stamp, r0, r1, c0, c1):
+    """A finished grid's cells [r0:r1, c0:c1] in one pass: the probabilities as uint8 (p × 255,
+    rounded half to even, clipped: ``probability_grid.quantize``) and the known mask (stamp above
+    0) packed 8 cells a byte, first cell in the high bit (``np.packbits(…, axis=1)``)."""
+    rows = r1 - r0
+    cols = c1 - c0
+    q = np.empty((rows, cols), dtype=np.uint8)
+    bits = np.zeros((rows, (cols + 7) // 8), dtype=np.uint8)
+    scale = np.float32(255.0)
+    for r in range(rows):
+        for c in range(cols):
+            v = np.rint(prob[r0 + r, c0 + c] * scale)
+            q[r, c] = np.uint8(min(max(v, 0.0), 255.0))
+            if stamp[r0 + r, c0 + c] > 0:
+                bits[r, c >> 3] |= np.uint8(128 >> (c & 7))
+    return q, bits
+
+
+@njit(cache=True, nogil=True)
+def occupied_field(prob, known_bits, half, kernel, radius):
+    """A likelihood field from scratch, at the kernel's dtype: ``out[q]`` = max over the occupied
+    cells o (known, ``prob`` above ``half``) with |q − o| ≤ radius of ``kernel[o − q]``, else 0.
+    ``known_bits``: the known mask packed as ``frozen_cells`` packs it."""
+    rows, cols = prob.shape
+    out = np.zeros((rows, cols), dtype=kernel.dtype)
+    for r in range(rows):
+        for c in range(cols):
+            if prob[r, c] <= half or not (known_bits[r, c >> 3] >> (7 - (c & 7))) & 1:
+                continue
+            for rr in range(max(r - radius, 0), min(r + radius + 1, rows)):
+                for cc in range(max(c - radius, 0), min(c + radius + 1, cols)):
+                    v = kernel[rr - r + radius, cc - c + radius]
+                    if v > out[rr, cc]:
+                        out[rr, cc] = v
+    return out

@@ -112,6 +112,13 @@ class ProbabilityGrid:
             return self._known_rows(0, self.shape[0])
         return (self.stamp > 0).view(np.uint8)
 
+    def known_bits(self) -> np.ndarray:
+        """The known mask packed 8 cells a byte along each row, first cell in the high bit
+        (``np.packbits(known, axis=1)``): what a frozen grid keeps."""
+        if self._known_bits is not None:
+            return self._known_bits
+        return np.packbits(self.stamp > 0, axis=1)
+
     def _known_rows(self, r0: int, r1: int) -> np.ndarray:
         """``known[r0:r1]`` of a frozen grid, unpacked from its bit mask."""
         return np.unpackbits(self._known_bits[r0:r1], axis=1, count=self.shape[1])
@@ -131,16 +138,19 @@ class ProbabilityGrid:
 
     def freeze(self, r0, r1, c0, c1):
         """Crop to [r0:r1, c0:c1] and drop the insertion buffers (no more inserts)."""
-        known = np.ascontiguousarray(self.known[r0:r1, c0:c1])
         # matching and export read probabilities only: the log-odds go, and the probabilities are kept
-        # as uint8 (p × 255, what branch-and-bound scores anyway) beside a 1-bit known mask
+        # as uint8 (p × 255, what branch-and-bound scores anyway) beside a 1-bit known mask, both made
+        # in one pass without full-size temporaries
+        if self._known_bits is not None:
+            raise ValueError("the grid is frozen already")
+        q, bits = _kernels.frozen_cells(self.prob, self.stamp, r0, r1, c0, c1)
         self.logodds = np.zeros((0, 0), dtype=np.float32)
-        self.prob = quantize(self.prob[r0:r1, c0:c1])
+        self.prob = q
         # a frozen grid is read, never matched by local SLAM again: its likelihood field goes
         self.field_sigma = None
         self.field = np.zeros((0, 0), dtype=np.float32)
         self.origin = self._cell_origin(c0, r0)
-        self._known_bits = np.packbits(known, axis=1)
+        self._known_bits = bits
         self.stamp = np.zeros((0, 0), dtype=np.int32)
 
     def release(self):
@@ -306,6 +316,9 @@ class ProbabilityGrid:
 
     def known_bounds(self):
         """(r0, r1, c0, c1) slice bounds of the known cells, or None."""
+        if self._known_bits is None:
+            b = _kernels.stamped_bounds(self.stamp)
+            return None if b[1] == 0 else tuple(int(v) for v in b)
         rows = np.flatnonzero(self.known.any(axis=1))
         if rows.size == 0:
             return None

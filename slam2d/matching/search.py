@@ -92,9 +92,12 @@ class PrecomputationStack:
     copy of the values.
     """
 
-    def __init__(self, grid: MatchGrid, depth: int, cell_offset: tuple[int, int] = (0, 0)):
+    def __init__(self, grid: MatchGrid, depth: int, cell_offset: tuple[int, int] = (0, 0),
+                 buffer: np.ndarray | None = None):
         """``cell_offset`` (col, row): ``grid`` is a crop (``search_region``) whose cell (0, 0) is that
-        cell of the grid the searches compute their cells in; ``branch_and_bound`` shifts them."""
+        cell of the grid the searches compute their cells in; ``branch_and_bound`` shifts them.
+        ``buffer``: a 1-D uint8 array (e.g. an evicted stack's ``buffer``) the levels are written into,
+        instead of new memory, when they fill at least half of it."""
         values = grid.values
         rows, cols = values.shape
         self.depth = depth
@@ -104,11 +107,18 @@ class PrecomputationStack:
         self.offsets = tuple((1 << d) - 1 for d in range(depth + 1))
         sizes = [(rows + p) * (cols + p) for p in self.offsets]
         self.starts = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-        self.data = np.empty(int(self.starts[-1]), dtype=values.dtype)
+        n = int(self.starts[-1])
+        size = n * values.dtype.itemsize
+        if buffer is None or not size <= buffer.nbytes <= 2 * size:
+            buffer = np.empty(size, dtype=np.uint8)
+        self.buffer = buffer
+        self.data = buffer[:size].view(values.dtype)
         self.level(0)[:, :] = values
         fill = _upper_fill(grid.unknown, values.dtype)
+        # one scratch for the row pass of every level: the last level's is the largest
+        scratch = np.empty((rows + self.offsets[-1]) * (cols + self.offsets[-1]), dtype=values.dtype)
         for d in range(1, depth + 1):
-            _double_block(self.level(d - 1), 1 << (d - 1), fill, self.level(d))
+            _double_block(self.level(d - 1), 1 << (d - 1), fill, self.level(d), scratch)
         self.grid = MatchGrid(self.level(0), grid.origin, grid.resolution, grid.unknown)
 
     def level(self, d: int) -> np.ndarray:
@@ -119,7 +129,8 @@ class PrecomputationStack:
 
     @property
     def nbytes(self) -> int:
-        return self.data.nbytes
+        """Bytes held: the whole buffer, also where the levels fill only part of it."""
+        return self.buffer.nbytes
 
 
 def search_region(shape: tuple[int, int], origin, resolution: float, poses, reach: float, linear_cells: int,
@@ -148,14 +159,19 @@ def search_region(shape: tuple[int, int], origin, resolution: float, poses, reac
     return r0, max(r1, r0 + 1), c0, max(c1, c0 + 1)
 
 
-def _double_block(prev: np.ndarray, h: int, fill, out: np.ndarray) -> None:
+def _double_block(prev: np.ndarray, h: int, fill, out: np.ndarray, scratch: np.ndarray | None = None) -> None:
     """Level d from level d − 1 (blocks of width h = 2^(d−1)): a block of width 2h starting at a
     cell is the max of the four width-h blocks starting at it, h to its right, h above and both.
     With the low-side padding (level d − 1 is offset by h − 1, level d by 2h − 1) that is
     ``out[i, j] = max(prev[i − h, j − h], prev[i − h, j], prev[i, j − h], prev[i, j])``, blocks
     beyond ``prev`` counting as ``fill``: the maximum of two shifted views along the rows, then
-    along the columns, instead of a sliding window of width 2^d over the grid."""
-    half = np.empty((out.shape[0], prev.shape[1]), dtype=prev.dtype)
+    along the columns, instead of a sliding window of width 2^d over the grid. ``scratch``: a 1-D
+    array of prev's dtype, at least out's rows × prev's columns long, for the row pass."""
+    shape = (out.shape[0], prev.shape[1])
+    if scratch is None:
+        half = np.empty(shape, dtype=prev.dtype)
+    else:
+        half = scratch[:shape[0] * shape[1]].reshape(shape)
     _shifted_max(prev, h, fill, half, 0)
     _shifted_max(half, h, fill, out, 1)
 
