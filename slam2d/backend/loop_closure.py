@@ -82,7 +82,9 @@ class StackCache:
     rebuilds every one of them at every node (large submaps, a long-range laser in open halls);
     the stacks one node needs are kept whatever their size. A matcher that scores the
     likelihood field refines on the submap's probabilities: once a match needs them they are kept
-    unpacked beside its stack, counted in the budget and evicted with it.
+    unpacked beside its stack, counted in the budget and evicted with it. The buffer of the stack
+    evicted last is kept until the next build, which writes into it when the levels fill at least
+    half of it (``PrecomputationStack``'s ``buffer``): a build then faults in no fresh memory.
     """
 
     def __init__(self, max_bytes: int, min_stacks: int = 1):
