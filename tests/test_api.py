@@ -131,7 +131,8 @@ def test_finish_frees_the_submaps_and_keeps_a_complete_map():
         slam.add_scan(s)
     slam.sync()
     subs = slam.tracker.all_submaps()
-    assert len(slam.global_slam.matchers) >= 2 and all(s.grid.prob.size > 0 for s in subs)
+    newer = slam.tracker.submaps.submaps[1:]  # the newer active submap keeps its scans for a batch: no grid yet
+    assert len(slam.global_slam.matchers) >= 2 and all(s.grid.prob.size > 0 for s in subs if s not in newer)
     res = slam.finish()
     assert all(s.grid.prob.size == 0 and s.grid.known.size == 0 for s in subs)
     assert slam.global_slam.stacks.nbytes == 0  # no search grid is left

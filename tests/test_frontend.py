@@ -675,3 +675,65 @@ def test_odometry_frozen_while_the_robot_moves_does_not_freeze_the_pose():
     for j in (k + 5, k + 30, len(scans) - 1):
         dt, dr = _rel_error(poses[k - 1], poses[j], scans[k - 1].ground_truth, scans[j].ground_truth)
         assert dt < 0.1 and dr < 1.0, (j, dt, dr)
+
+
+
+def _submap_scans(n, seed=4):
+    rng = np.random.default_rng(seed)
+    angles = np.linspace(-np.pi, np.pi, 90, endpoint=False)
+    out = []
+    for i in range(n):
+        pose = np.array([0.15 * i, 0.05 * np.sin(i / 5), 0.02 * i])
+        r = rng.uniform(0.5, 5.0, 90)
+        hits = np.c_[r * np.cos(angles + pose[2]), r * np.sin(angles + pose[2])] + pose[:2]
+        out.append((pose, pose[:2].copy(), hits, hits[::10] * 1.5 - pose[:2] * 0.5))
+    return out
+
+
+def _cells(g, frozen=False):
+    """(origin of the observed crop, probabilities, known, field) of a grid, cropped to what it observed."""
+    if frozen:
+        return g.origin, g.prob, g.known, None
+    r0, r1, c0, c1 = g.known_bounds()
+    return (g.origin + np.array([c0, r0]) * g.resolution, g.prob[r0:r1, c0:c1], g.known[r0:r1, c0:c1],
+            g.field[r0:r1, c0:c1])
+
+
+@pytest.mark.parametrize("restart_at", [None, 25])
+def test_active_submaps_built_in_a_batch_equal_scan_by_scan(restart_at):
+    """The newer active submap takes its scans in one batch when it becomes the older: the matched
+    submap at every scan, and every finished one (a restart included), holds what inserting its
+    scans one at a time gives (its field to the last bits, which the batch lays afresh)."""
+    from slam2d.config import GridConfig
+    from slam2d.grid.probability_grid import ProbabilityGrid
+    from slam2d.grid.submap import ActiveSubmaps
+
+    scans = _submap_scans(75)  # ends with two active submaps, the newer one's scans kept
+    act = ActiveSubmaps(GridConfig(), 10, field_sigma=0.1)
+
+    def one_at_a_time(sub):
+        g = ProbabilityGrid.from_config(GridConfig(), field_sigma=0.1)
+        for i in sub.node_indices:
+            _, origin, hits, misses = scans[i]
+            g.insert(origin, hits, misses)
+        return g
+
+    def same(a, b):
+        for x, y in zip(a[:3], b[:3]):
+            np.testing.assert_allclose(x, y, atol=1e-9) if x.dtype.kind == "f" and x.ndim == 1 else \
+                np.testing.assert_array_equal(x, y)
+        if a[3] is not None:
+            np.testing.assert_allclose(a[3], b[3], rtol=0, atol=1e-6)
+
+    finished = []
+    for i, (pose, origin, hits, misses) in enumerate(scans):
+        finished += act.insert(pose, origin, hits, misses, i, restart=i == restart_at)
+        m = act.matching_submap
+        same(_cells(m.grid), _cells(one_at_a_time(m)))
+    assert len(finished) >= 3 and (restart_at is None or any(len(s.node_indices) < 20 for s in finished))
+    for s in finished:
+        ref = one_at_a_time(s)
+        ref.freeze(*ref.known_bounds())
+        same(_cells(s.grid, True), _cells(ref, True))
+    # the kept scans are the newer submap's, and none is left over once it is the only one
+    assert len(act._pending) == (act.submaps[1].num_range_data if len(act.submaps) == 2 else 0)

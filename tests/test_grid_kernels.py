@@ -426,3 +426,40 @@ def test_occupied_field_oracle(dtype):
         got = _kernels.occupied_field(prob, bits, np.float32(0.85), kernel, radius)
         np.testing.assert_array_equal(got, want)
     assert got.dtype == dtype and got[0, 0] == got.max() and (got == 0).any()
+
+
+def test_insert_scans_lays_the_field_the_incremental_stamping_keeps():
+    """A batch of scans into a grid with a likelihood field: the cells equal scan-by-scan insertion
+    exactly; the field is the kernel laid afresh around every occupied cell (exactly the rule), and
+    the field kept up scan by scan differs from it only in the last bits."""
+    rng = np.random.default_rng(6)
+    angles = np.linspace(-np.pi, np.pi, 120, endpoint=False)
+    scans = []
+    for i in range(30):
+        o = rng.normal(0, 0.5, 2)
+        r = rng.uniform(0.5, 4.0, 120)
+        scans.append((o, np.c_[r * np.cos(angles), r * np.sin(angles)] + o, np.zeros((0, 2))))
+    batch, one = ProbabilityGrid(0.05, field_sigma=0.1), ProbabilityGrid(0.05, field_sigma=0.1)
+    batch.insert_scans(scans)
+    for o, h, m in scans:
+        one.insert(o, h, m)
+    # the same lattice, other extents: compare where both grids are (every observed cell is in both)
+    off = np.round((batch.origin - one.origin) / 0.05).astype(int)  # batch cell (0, 0) in one's cells (col, row)
+    lo = np.maximum(off, 0)
+    hi = np.minimum(off + np.array(batch.shape[::-1]), np.array(one.shape[::-1]))
+    sl = (slice(lo[1], hi[1]), slice(lo[0], hi[0]))
+    bl = (slice(lo[1] - off[1], hi[1] - off[1]), slice(lo[0] - off[0], hi[0] - off[0]))
+    assert batch.known[bl].sum() == batch.known.sum() == one.known.sum()
+    np.testing.assert_array_equal(batch.logodds[bl], one.logodds[sl])
+    np.testing.assert_array_equal(batch.stamp[bl], one.stamp[sl])
+    occ = np.argwhere(batch.logodds > 0)
+    rows, cols = batch.shape
+    want = np.zeros((rows + 2 * batch.field_radius, cols + 2 * batch.field_radius), np.float32)
+    k = batch.field_kernel
+    for r, c in occ:
+        win = want[r:r + k.shape[0], c:c + k.shape[1]]
+        np.maximum(win, k, out=win)
+    rad = batch.field_radius
+    np.testing.assert_array_equal(batch.field, want[rad:rad + rows, rad:rad + cols])
+    np.testing.assert_allclose(batch.field[bl], one.field[sl], rtol=0, atol=1e-6)
+    assert len(occ) > 300 and (one.field[sl] > 0).sum() > len(occ)

@@ -210,7 +210,9 @@ class ProbabilityGrid:
         """Insert many scans ``(origin (2,), hits (N, 2), misses (M, 2))`` in order, grid frame.
 
         The grid's rows are split among threads (``insert_scans_striped``); the result is
-        identical to inserting the scans one at a time.
+        identical to inserting the scans one at a time. A likelihood field is computed afresh
+        from the occupied cells (one at a time keeps it up cell by cell: the same values but in
+        the last bits of cells recomputed after a cell stopped being occupied).
         """
         batch = _ScanBatch(scans)
         if batch.empty:
@@ -222,8 +224,9 @@ class ProbabilityGrid:
         o, e = batch.to_cells(self.origin, self.resolution)
         _kernels.insert_scans_striped(self.logodds, self.prob, self.stamp, first, o, e, batch.starts, batch.n_hits,
                                       self.hit_delta, self.miss_delta, self.lo_min, self.lo_max, max(1, int(n)), 0)
-        if self.field_sigma:
-            self.field = self.compute_field()
+        if self.field_sigma:  # afresh: the kernel laid around every occupied cell (``stamp_field``'s rule)
+            self.field = _kernels.occupied_field(self.logodds, self.known_bits(), np.float32(0.0), self.field_kernel,
+                                                 self.field_radius)
 
     def build_finished(self, scans: list, threads: int | None = None, band_cells: int = 1 << 22):
         """Insert many scans, in order, into this empty grid and finish it: what is kept is the

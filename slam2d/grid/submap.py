@@ -6,7 +6,8 @@ Cartographer's ``ActiveSubmaps2D``. A count alone ties a submap's extent to the 
 a sparse log (scans a metre apart) would grow submaps five times the size of a dense one,
 with five times the drift inside and the memory. So a submap is also full once the robot
 travelled ``max_travel`` metres since it started (path length of the inserted poses). Local matching uses the older active submap, which
-always holds more data. A submap's grid is axis-aligned in the local frame; its
+always holds more data; the newer one takes its scans in one batch when it becomes the older
+(``ActiveSubmaps``), since nothing reads it before. A submap's grid is axis-aligned in the local frame; its
 ``local_pose`` is the tracking pose of the scan that started it. Where local SLAM lost track
 (a scan forced in from the edge of every window), the active submaps are finished and the scan
 starts a new one (``ActiveSubmaps.insert``'s ``restart``), as Cartographer starts a new
@@ -76,6 +77,15 @@ class Submap:
 
 
 class ActiveSubmaps:
+    """The two active submaps: every scan goes into both, the older one is matched against, and it
+    is finished once the newer one holds ``num_range_data`` scans.
+
+    The newer submap is not read until it becomes the older one (nor by anything else: observers
+    see the matched submap, global SLAM only finished ones), so its scans are kept and inserted in
+    one batch then (``ProbabilityGrid.insert_scans``: the same cells as one scan at a time, the
+    likelihood field computed afresh). Its grid is then allocated once for the extent of all of
+    them, instead of growing, and copying itself, scan after scan."""
+
     def __init__(self, grid_cfg, num_range_data: int, field_sigma: float | None = None, max_travel: float = math.inf):
         self.grid_cfg = grid_cfg
         self.field_sigma = field_sigma
@@ -84,6 +94,7 @@ class ActiveSubmaps:
         self.submaps: list[Submap] = []  # active ones, oldest first
         self.count = 0
         self._last_pose = None
+        self._pending: list[tuple] = []  # (origin, hits, misses) of the scans the newer submap has yet to take
 
     def _full(self, s: Submap) -> bool:
         return s.num_range_data >= self.num_range_data or s.travel >= self.max_travel
@@ -97,6 +108,7 @@ class ActiveSubmaps:
         submaps against the old ones where loops show how."""
         finished = []
         if restart:
+            self._flush()
             while self.submaps:
                 old = self.submaps.pop(0)
                 old.finish()
@@ -108,7 +120,9 @@ class ActiveSubmaps:
                                                                local_pose[1] - self._last_pose[1])
         self._last_pose = (float(local_pose[0]), float(local_pose[1]))
         self.last_inserted_into = [(s.index, s.local_pose) for s in self.submaps]
-        insert_scan([s.grid for s in self.submaps], origin, hits, misses)
+        insert_scan([self.submaps[0].grid], origin, hits, misses)
+        if len(self.submaps) == 2:
+            self._pending.append((np.asarray(origin, dtype=float), hits, misses))
         for s in self.submaps:
             if s.num_range_data:
                 s.travel += step
@@ -119,7 +133,14 @@ class ActiveSubmaps:
             old = self.submaps.pop(0)
             old.finish()
             finished.append(old)
+            self._flush()  # the newer submap is matched against from the next scan on
         return finished
+
+    def _flush(self):
+        """Insert the kept scans into the newest active submap."""
+        if self._pending:
+            self.submaps[-1].grid.insert_scans(self._pending)
+            self._pending = []
 
     def _add(self, local_pose):
         grid = ProbabilityGrid.from_config(self.grid_cfg, field_sigma=self.field_sigma)
