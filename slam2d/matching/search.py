@@ -159,7 +159,7 @@ def search_region(shape: tuple[int, int], origin, resolution: float, poses, reac
     return r0, max(r1, r0 + 1), c0, max(c1, c0 + 1)
 
 
-def _double_block(prev: np.ndarray, h: int, fill, out: np.ndarray, scratch: np.ndarray | None = None) -> None:
+def _double_block(prev: np.ndarray, h: int, fill, out: np.ndarray, scratch: np.ndarray) -> None:
     """Level d from level d − 1 (blocks of width h = 2^(d−1)): a block of width 2h starting at a
     cell is the max of the four width-h blocks starting at it, h to its right, h above and both.
     With the low-side padding (level d − 1 is offset by h − 1, level d by 2h − 1) that is
@@ -167,11 +167,7 @@ def _double_block(prev: np.ndarray, h: int, fill, out: np.ndarray, scratch: np.n
     beyond ``prev`` counting as ``fill``: the maximum of two shifted views along the rows, then
     along the columns, instead of a sliding window of width 2^d over the grid. ``scratch``: a 1-D
     array of prev's dtype, at least out's rows × prev's columns long, for the row pass."""
-    shape = (out.shape[0], prev.shape[1])
-    if scratch is None:
-        half = np.empty(shape, dtype=prev.dtype)
-    else:
-        half = scratch[:shape[0] * shape[1]].reshape(shape)
+    half = scratch[:out.shape[0] * prev.shape[1]].reshape(out.shape[0], prev.shape[1])
     _shifted_max(prev, h, fill, half, 0)
     _shifted_max(half, h, fill, out, 1)
 
