@@ -202,6 +202,7 @@ class LocalSlam:
         self.num_recovery_skipped = 0
         self.untrusted_in_a_row = 0
         self._doubt = np.zeros(2)  # MatchingResult.doubt, gathered until the next insertion
+        self._carried = np.zeros(2)  # distance, |rotation| of the motion since the last pose that was not carried from a prediction
         self.scores: list[float] = []
         self.recent_scores: deque[float] = deque(maxlen=RECENT_SCORES)
         # how far trusted matches lay from their prediction [m]: the prediction's measured error
@@ -244,10 +245,16 @@ class LocalSlam:
         # statistics.median: numpy's value for a few dozen floats, without its per-call overhead
         return statistics.median(self.recent_scores) if len(self.recent_scores) >= MIN_SCORES_FOR_TRUST else None
 
+    def _least_recovered_score(self, limit: float, params: SearchParameters) -> float:
+        """The trust limit under the largest delta penalty of the recovery lattice ``params``: no pose
+        scoring less reaches ``limit`` once the penalty is taken off, and no recovered peak scoring
+        less is taken (``_takes_recovered``)."""
+        return limit * self.wide_matcher.penalty.smallest_factor(params)
+
     def _recovery_floor(self, limit: float, params: SearchParameters) -> float:
         """Below this, no pose of the recovery lattice ``params`` can score ``limit`` once the delta
-        penalty is taken off."""
-        return float(np.nextafter(limit * self.wide_matcher.penalty.smallest_factor(params), -np.inf))
+        penalty is taken off, and none is taken (``_least_recovered_score``)."""
+        return float(np.nextafter(self._least_recovered_score(limit, params), -np.inf))
 
     @staticmethod
     def _better_where_observed(submap, grid, wide, m, points) -> bool:
@@ -256,7 +263,20 @@ class LocalSlam:
         common = observed_scores(submap.grid, grid, [wide.pose, m.pose], points)
         return common is not None and common[0] > common[1]
 
-    def _takes_recovered(self, wide, m, predicted, limit, submap, grid, points) -> bool:
+    def _plausible_jump(self, pose, predicted) -> bool:
+        """Whether ``pose`` lies within the prediction's own error bound: the real-time windows of the
+        motion since the last pose that was not carried from a prediction (``windows``, without the
+        largest windows' cap, which bounds the search, not the error), i.e. grown by this scan's
+        motion and by that of every untrusted scan before it, whose pose was the prediction."""
+        motion = self.extrapolator.motion(predicted)
+        d = self._carried[0] + math.hypot(motion[0], motion[1])
+        r = self._carried[1] + abs(math.remainder(motion[2], 2 * math.pi))
+        lin, ang = self.windows(np.array([d, 0.0, r]))
+        lin += self.cfg.grid.resolution  # the searches place poses on a lattice of cells
+        return (math.hypot(pose[0] - predicted[0], pose[1] - predicted[1]) <= lin
+                and abs(math.remainder(pose[2] - predicted[2], 2 * math.pi)) <= ang)
+
+    def _takes_recovered(self, wide, m, predicted, limit, submap, grid, points, least: float = 0.0) -> bool:
         """Whether the recovered match ``wide`` replaces ``m``, the real-time window's match around
         ``predicted`` (None: there is none). It must be trusted where ``m`` was not (``limit``; a
         wide window always holds some pose that scores a little higher, often a wrong one), beat
@@ -264,14 +284,30 @@ class LocalSlam:
         that ``m`` carries (the recovered score is that of its own peak: where a scene repeats,
         a place a door further scores as well as the right one, and the prediction must decide,
         as it does within the window), and beat ``m`` on the points both put on observed cells
-        (a wide window holds poses that score higher only by laying new ground onto mapped cells)."""
+        (a wide window holds poses that score higher only by laying new ground onto mapped cells).
+        Where ``m`` is no peak (on its window's edge), a clear recovered peak that fails this also
+        replaces the prediction, within the prediction's error bound (``_plausible_jump``), if it
+        beats the prediction itself on the points both put on observed cells and scores at least
+        ``least`` (``_least_recovered_score``: the recovery search prunes below it, so pruning still
+        changes no result)."""
         if wide is None:
             return False
         if m is None:
             return True
-        return (wide.score * self.matcher.penalty.factor(wide.pose, predicted) > m.score
+        if (wide.score * self.matcher.penalty.factor(wide.pose, predicted) > m.score
                 and (limit is None or wide.score >= limit)
-                and self._better_where_observed(submap, grid, wide, m, points))
+                and self._better_where_observed(submap, grid, wide, m, points)):
+            return True
+        # no peak around the prediction (the real-time search ended on its edge): the prediction is
+        # off, typically a fast turn whose odometry slipped beyond the largest rotation window, and a
+        # turn shows new ground, so its right pose scores below ``limit`` (the slope ``m`` climbed
+        # can also outscore it). A clear peak there replaces the prediction (a weak match below
+        # ``limit``) where the prediction's own error bound holds it and it explains the scan
+        # better than the prediction on the points both put on observed cells
+        if not m.on_edge or wide.on_edge or wide.score < least or not self._plausible_jump(wide.pose, predicted):
+            return False
+        common = observed_scores(submap.grid, grid, [wide.pose, predicted], points)
+        return common is not None and common[0] > common[1]
 
     def _recover(self, grid, scan, predicted, points, limit, floor=0.0):
         """Branch-and-bound over the recovery windows around each distinct prediction, in the order the
@@ -282,7 +318,8 @@ class LocalSlam:
 
         ``floor``: the caller takes a recovered match only if the fine search around its peak scores
         ``limit``, and no pose of the recovery lattice scoring below ``_recovery_floor`` (its
-        score times the smallest delta penalty) can reach that. So branch-and-bound may cut every
+        score times the smallest delta penalty) can reach that; nor, where the real-time search
+        found no peak, one scoring below that floor (``_least_recovered_score``). So branch-and-bound may cut every
         subtree whose bound is not above the floor: the best match above it is the same one, and a
         prediction whose best lies below it yields nothing instead of a match the caller would
         reject. (The fine search may step two cells past the window's edge; a match found there was
@@ -362,13 +399,15 @@ class LocalSlam:
                 t_rec = time.perf_counter()
                 # with a match in hand, a recovered one is only taken when trusted (below)
                 w = self.wide_matcher
-                floor = 0.0 if m is None or limit is None else self._recovery_floor(
-                    limit, SearchParameters.make(w.linear_window, w.angular_window, grid.resolution, points))
+                floor = least = 0.0
+                if m is not None and limit is not None:
+                    params = SearchParameters.make(w.linear_window, w.angular_window, grid.resolution, points)
+                    floor, least = self._recovery_floor(limit, params), self._least_recovered_score(limit, params)
                 with self.cores.share():
                     wide = self._recover(grid, scan, predicted, points, limit, floor)
                 timings["recovery"] = (time.perf_counter() - t_rec) * 1e3
                 self.num_recovery_searches += 1
-                if self._takes_recovered(wide, m, predicted, limit, submap, grid, points):
+                if self._takes_recovered(wide, m, predicted, limit, submap, grid, points, least):
                     # had the recovery chosen wrong, the pose it replaced was the right one
                     recovered = predicted if m is None else m.pose
                     m = wide
@@ -432,6 +471,11 @@ class LocalSlam:
         elif ref is None:
             self._still_ref = None
         self._doubt += self._step_doubt(quality, pose, recovered, submap is not None)
+        if quality == "untrusted":  # the pose is the prediction: its error carries into the next one
+            motion = self.extrapolator.motion(pose)
+            self._carried += (math.hypot(motion[0], motion[1]), abs(math.remainder(motion[2], 2 * math.pi)))
+        else:
+            self._carried[:] = 0.0
         self.extrapolator.add(scan.timestamp, pose, odom, measured=quality in ("trusted", "unmatched"))
         inserted = quality != "untrusted" and not self.filter.is_similar(scan.timestamp, pose, odom)
         finished = []

@@ -137,8 +137,9 @@ def _sparse_noisy_scans(spacing=0.8, sigma=0.12, seed=3):
 def test_the_translation_window_follows_the_prediction_s_measured_error(monkeypatch):
     """Scans 0.8 m apart with odometry off by 0.12 m per axis each step: true poses often lie
     beyond the configured 0.3 m window. Sized by the measured error, the window holds them, so
-    far fewer scans need the recovery search and the steps come out more accurate than with the
-    window held at its configured size."""
+    far fewer scans need the recovery search (a wide search, which also reaches look-alike places
+    far off), and the steps come out at least as accurate as with the window held at its
+    configured size, where the recovery search places the steps beyond it."""
     import slam2d.frontend as frontend
 
     def run(sigmas):
@@ -159,7 +160,7 @@ def test_the_translation_window_follows_the_prediction_s_measured_error(monkeypa
     assert grown_win[1] == pytest.approx(math.radians(rt.angular_search_window_deg))
     assert grown.num_recovery_searches <= fixed.num_recovery_searches / 2, (grown.num_recovery_searches,
                                                                            fixed.num_recovery_searches)
-    assert grown_err < fixed_err, (grown_err, fixed_err)
+    assert grown_err <= fixed_err, (grown_err, fixed_err)
 
 
 def test_a_dense_log_keeps_the_configured_window():
@@ -401,6 +402,62 @@ def test_a_recovered_pose_must_win_under_the_prediction_s_penalty(monkeypatch):
     assert not takes([0.1, 0.0, 0.02], 0.701, limit=0.75)            # never below the trust limit
     assert tracker._takes_recovered(MatchResult(predicted, 0.1, 1), None, predicted, 0.705, None, None, None)
     assert not tracker._takes_recovered(None, m, predicted, 0.705, None, None, None)
+
+
+def test_a_clear_recovered_peak_replaces_a_prediction_that_found_no_peak():
+    """The real-time search ended on its window's edge (no peak near the prediction: a fast turn whose
+    odometry slipped beyond the largest rotation window), and the recovery found a clear peak that
+    scores below the trust limit (a turn shows new ground). It replaces the prediction where the
+    prediction's own error bound (the windows of the motion since the last pose not carried from a
+    prediction) holds it and it explains the scan better on the points both put on observed cells;
+    a robot that did not move keeps its prediction."""
+    from types import SimpleNamespace
+
+    from slam2d.matching.real_time import MatchResult
+
+    g, mg, pts = _observed_world()
+    sub = SimpleNamespace(grid=g)
+    a, b = np.zeros(3), np.array([-3.0, 0.0, 0.0])   # P1 on walls at A, on observed free cells at B
+    tracker = LocalSlam(config_from_dict({}), loop_closure=True)
+    edge = MatchResult(b, 0.6, 1, on_edge=True)        # the real-time search around the prediction B
+    low = MatchResult(a, 0.5, 1)                       # the recovery's clear peak A, below the limit
+
+    def takes(wide, m=edge, predicted=b):
+        return tracker._takes_recovered(wide, m, predicted, 0.7, sub, mg, pts)
+
+    ex = tracker.extrapolator
+    ex.last_pose = b + [-5.0, 0.0, 0.0]               # 5 m driven since the last pose: a bound of 3.6 m
+    assert takes(low)
+    assert not takes(MatchResult(a, 0.5, 1, on_edge=True))    # on the recovery window's edge: no peak either
+    assert not takes(low, m=MatchResult(b, 0.6, 1))            # an in-window peak stands below the limit
+    assert not takes(MatchResult(b, 0.5, 1), predicted=a)      # worse than the prediction where both are observed
+    assert not tracker._takes_recovered(low, edge, b, 0.7, sub, mg, pts, least=0.55)  # below what the search keeps
+    ex.last_pose = b.copy()                           # the robot did not move: 3 m is beyond its error bound
+    assert not takes(low)
+    tracker._carried[:] = (5.0, 0.0)                  # ... unless untrusted scans carried the prediction 5 m
+    assert takes(low)
+
+
+def test_a_turn_beyond_the_rotation_window_is_placed_by_the_recovery():
+    """Every third scan of the bundled log, with every odometry rotation 40 % too large (a slipping
+    wheel, at a low scan rate): turns slip beyond the largest real-time rotation window, and the
+    recovery's pose replaces the prediction even where the real-time search, ending on its edge,
+    scored higher on its slope. Every step is then right; none is left at the prediction."""
+    scans = [s for i, s in enumerate(_bundled_scans(1500)) if i % 3 == 0]
+    odom = [scans[0].odom_pose]
+    for s0, s1 in zip(scans, scans[1:]):
+        d = between(s0.odom_pose, s1.odom_pose)
+        odom.append(compose(odom[-1], np.array([d[0], d[1], 1.4 * d[2]])))
+    for s, o in zip(scans, odom):
+        s.odom_pose = o
+    tracker = LocalSlam(config_from_dict({}), loop_closure=True)
+    results = [tracker.add_scan(s) for s in scans]
+    assert tracker.num_recovered >= 1
+    assert tracker.num_untrusted == 0 and tracker.num_forced == 0
+    for i in range(1, len(scans)):
+        dt, dr = _rel_error(results[i - 1].local_pose, results[i].local_pose, scans[i - 1].ground_truth,
+                            scans[i].ground_truth)
+        assert dt < 0.1 and dr < 1.0, (i, dt, dr)
 
 
 @pytest.mark.parametrize("seed", range(4))
