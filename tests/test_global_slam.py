@@ -95,6 +95,40 @@ def test_incremental_pose_graph_agrees_with_batch_and_forgets_removed_loops():
     assert math.hypot(*(b[-1][:2] - b[0][:2] - (gt[-1][:2] - gt[0][:2]))) < 0.1  # the true loop closed
 
 
+def test_an_indeterminate_isam2_update_falls_back_to_levenberg_marquardt(caplog):
+    """A stretch of nodes held a thousand million times tighter to each other than to the rest (the
+    information spans more than floating point keeps): iSAM2's undamped elimination calls the
+    system indeterminate (a real no-odometry run hit it and stopped with gtsam's traceback). The
+    graph is then solved by Levenberg-Marquardt, as the batch graph is, from then on too; loops
+    added later still close."""
+    def build(incremental):
+        g = PoseGraph(1.0, 1e3, 1e3, incremental=incremental)
+        for j in range(4):
+            g.add_node(j, [j, 0.1 * j, 0.05 * j])
+        g.add_intra(0, 1, [1, 0, 0], np.diag([1e-16] * 3))
+        g.add_intra(1, 2, [1, 0, 0], np.diag([1e-16] * 3))
+        g.add_intra(0, 3, [3, 0, 0], np.eye(3))
+        g.add_intra(2, 3, [1, 0, 0], np.eye(3))
+        return g
+
+    plain = build(True)
+    with pytest.raises(RuntimeError, match="Indeterminate"):
+        plain._update_isam()  # what iSAM2 itself does with it
+    batch, inc = build(False), build(True)
+    with caplog.at_level("WARNING"):
+        batch.optimize()
+        inc.optimize()
+    assert inc.isam_failed_at is not None and not inc.incremental and "indeterminate" in caplog.text
+    for g in (batch, inc):  # a loop added afterwards: both solve it the same way
+        g.add_node(4, [4.5, 0.3, 0.0])
+        g.add_intra(3, 4, [1, 0, 0], np.diag([1e-2, 1e-2, 1e-3]))
+        g.add_loop(0, 4, [4.0, 0.0, 0.0], [0.02, 0.02, 0.005], {})
+        g.optimize()
+    for j in range(5):
+        np.testing.assert_allclose(inc.node_pose(j), batch.node_pose(j), atol=1e-6)
+    assert abs(inc.node_pose(2)[0] - 2.0) < 1e-6 and abs(inc.node_pose(4)[0] - 4.0) < 0.05
+
+
 def test_global_slam_on_the_simulated_loops(sim_run):
     res, gs, gt = sim_run
     s = gs.summary()["loop_closure"]

@@ -18,12 +18,16 @@ This is the only module that imports gtsam.
 """
 from __future__ import annotations
 
+import logging
 import math
+
 import gtsam
 import numpy as np
 
 from slam2d.geometry import between
 from slam2d.types import LoopFactor
+
+log = logging.getLogger(__name__)
 
 
 def _key(kind: str, i: int) -> int:
@@ -95,6 +99,7 @@ class PoseGraph:
         self.has_prior = False
         self.iterations = 0
         self.last_error = (math.nan, math.nan)
+        self.isam_failed_at: str | None = None  # where iSAM2 gave up (``_leave_isam``), if it did
 
     # ---- variables
     def add_node(self, j: int, pose):
@@ -163,8 +168,13 @@ class PoseGraph:
     # ---- solve
     def _solve(self, batch: bool = False):
         if self.incremental and not batch:
-            self._update_isam()
-            return
+            try:
+                self._update_isam()
+                return
+            except RuntimeError as e:  # gtsam's IndeterminateLinearSystemException
+                if "Indeterminate linear system" not in str(e):
+                    raise
+                self._leave_isam(e)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(50)
         opt = gtsam.LevenbergMarquardtOptimizer(self.graph, self.values, params)
@@ -172,6 +182,19 @@ class PoseGraph:
         self.values = opt.optimize()
         self.iterations += opt.iterations()
         self.last_error = (before, self.graph.error(self.values))
+
+    def _leave_isam(self, error: Exception):
+        """iSAM2 eliminates without damping, and a graph whose information spans more orders of magnitude
+        than floating point keeps (a nearly free stretch of nodes; a constraint far tighter than the
+        rest) breaks its elimination: 'indeterminate linear system'. Levenberg-Marquardt damps each
+        step and solves the same graph, so the graph is solved in batch from here on (every factor and
+        node is in ``graph`` and ``values`` already)."""
+        where = str(error).split("(Symbol:", 1)[-1].split(")", 1)[0].strip() if "(Symbol:" in str(error) else "?"
+        log.warning("pose graph: iSAM2 found the system indeterminate near %s; solving in batch from here on", where)
+        self.incremental = False
+        self.isam = None
+        self.isam_failed_at = where
+        self._pending, self._new_values, self._isam_index, self._removals = [], gtsam.Values(), {}, []
 
     def _update_isam(self):
         new = gtsam.NonlinearFactorGraph()
