@@ -91,3 +91,28 @@ def test_a_solver_failure_is_raised_not_hung():
             g.optimize()
     finally:
         g.close()
+
+
+def test_the_solver_process_solves_an_indeterminate_graph_and_says_so_on_stderr(capfd):
+    """The graph iSAM2 calls indeterminate (``test_global_slam``'s) solved in the child process: no
+    SolverError, the in-process batch numbers, and the fallback's warning on the caller's stderr in
+    the CLI's form."""
+    def build(g):
+        for j in range(4):
+            g.add_node(j, [j, 0.1 * j, 0.05 * j])
+        g.add_intra(0, 1, [1, 0, 0], np.diag([1e-16] * 3))
+        g.add_intra(1, 2, [1, 0, 0], np.diag([1e-16] * 3))
+        g.add_intra(0, 3, [3, 0, 0], np.eye(3))
+        g.add_intra(2, 3, [1, 0, 0], np.eye(3))
+        g.optimize()
+        return g
+
+    remote = build(RemotePoseGraph(1.0, 1e3, 1e3, incremental=True))
+    local = build(PoseGraph(1.0, 1e3, 1e3, incremental=False))
+    try:
+        for j in range(4):
+            np.testing.assert_allclose(remote.node_pose(j), local.node_pose(j), atol=1e-9)
+    finally:
+        remote.close()
+    err = capfd.readouterr().err
+    assert "slam2d: WARNING: pose graph: iSAM2 found the system indeterminate near n" in err

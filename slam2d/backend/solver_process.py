@@ -232,4 +232,8 @@ def _apply(pose_graph, graph, loops: dict, msg):
 
 
 if __name__ == "__main__":
+    import logging
+
+    # the solver's warnings (``pose_graph``) reach the same stderr as the caller's, in the CLI's form
+    logging.basicConfig(level=logging.WARNING, format="slam2d: %(levelname)s: %(message)s")
     _serve(Connection(int(sys.argv[1]), writable=False), Connection(int(sys.argv[2]), readable=False))
