@@ -397,7 +397,7 @@ class LocalSlam:
                 # not trusted: search wide around every prediction (Olson 2009's exhaustive search made
                 # cheap by branch-and-bound, Hess et al. 2016 Sec. V-C)
                 t_rec = time.perf_counter()
-                # with a match in hand, a recovered one is only taken when trusted (below)
+                # with a match in hand, a recovered one is taken when trusted, or where that match is no peak (below)
                 w = self.wide_matcher
                 floor = least = 0.0
                 if m is not None and limit is not None:
