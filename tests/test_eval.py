@@ -75,6 +75,35 @@ def test_relations_interpolate_and_count_unmatched():
     assert m["abs_trans_m"]["max"] == pytest.approx(0.0, abs=1e-12)
 
 
+def test_exact_relations_leave_out_the_interpolated_ones():
+    """A trajectory that turned between its poses: a relation with an interpolated end carries the
+    interpolation's error; ``exact`` scores only the relations whose two stamps are poses, and counts
+    the others; the CLI's --exact gives the same."""
+    times = np.array([0.0, 1.0, 2.0])
+    poses = np.array([[0.0, 0, 0], [1.0, 0, math.pi / 2], [1.0, 1.0, math.pi / 2]])
+    # truth: at t = 0.5 the robot stood at (1, 0, 0) (it drove, then turned); the interpolation says (0.5, 0, 45°)
+    rel = Relations(np.array([0.0, 0.5, 0.0, 5.0]), np.array([1.0, 1.0, 2.0, 6.0]),
+                    np.array([[1.0, 0, math.pi / 2], [0.0, 0, math.pi / 2], [1.0, 1.0, math.pi / 2], [1, 0, 0]]))
+    every = relations_metric(times, poses, rel)
+    exact = relations_metric(times, poses, rel, exact=True)
+    assert every["counts"]["evaluated"] == 3 and every["abs_trans_m"]["max"] > 0.4  # the interpolated one is off
+    assert exact["counts"] == {"relations": 4, "exact": 2, "interpolated": 0, "unmatched": 1, "not_exact": 1,
+                               "evaluated": 2}
+    assert exact["abs_trans_m"]["max"] == pytest.approx(0.0, abs=1e-12)
+    assert exact["abs_rot_deg"]["max"] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_exact_relations_on_the_command_line(tmp_path):
+    traj, rel = tmp_path / "t.txt", tmp_path / "r.relations"
+    traj.write_text("0 0 0 0 0 0 0 1\n1 1 0 0 0 0 0.7071067811865476 0.7071067811865476\n")
+    rel.write_text("0 1 1 0 0 0 0 1.5707963267948966\n0.5 1 0 0 0 0 0 1.5707963267948966\n")
+    out = slam2d("eval", "relations", traj, rel, "--exact", "--json")
+    assert out.returncode == 0, out.stderr
+    m = json.loads(out.stdout)
+    assert m["counts"]["evaluated"] == 1 and m["counts"]["not_exact"] == 1
+    assert m["abs_trans_m"]["mean"] == pytest.approx(0.0, abs=1e-9)
+
+
 def test_relations_on_intel_odometry(tmp_path):
     src = dataset("intel")
     out = tmp_path / "odo"

@@ -9,6 +9,7 @@ import numpy as np
 
 EXAMPLES = """examples:
   slam2d eval relations runs/intel/trajectory.txt ../shared/datasets/intel/intel.relations
+  slam2d eval relations runs/thin/trajectory.txt ../shared/datasets/intel/intel.relations --exact
   slam2d eval ate runs/intel/trajectory.txt ../shared/datasets/intel/intel.gfs.log --plot runs/intel/ate.png
   slam2d eval loops runs/intel --reference ../shared/datasets/intel/intel.gfs.log
   slam2d eval loops runs/orebro --ground-truth sparse/orebro.gt.txt
@@ -26,6 +27,9 @@ def add_eval_parser(sub):
     r.add_argument("trajectory", help="TUM trajectory (e.g. RUN_DIR/trajectory.txt)")
     r.add_argument("relations", help="relations file: t1 t2 x y z roll pitch yaw per line")
     r.add_argument("--tolerance", type=float, default=1e-4, help="timestamp match tolerance [s] (default 1e-4)")
+    r.add_argument("--exact", action="store_true",
+                   help="score only the relations whose two stamps are both poses of the trajectory (no interpolation: "
+                        "for a log thinned by degrade.py --keep-every, where interpolating across dropped scans makes most of the error)")
     r.add_argument("--json", action="store_true")
 
     a = es.add_parser("ate", help="absolute trajectory error (SE(2) Umeyama alignment; also the scale of the best similarity alignment and the error left after it) and RPE")
@@ -95,7 +99,7 @@ def _relations(args) -> int:
     from slam2d.io.trajectory import read_tum
 
     t, poses, _ = read_tum(args.trajectory)
-    m = relations_metric(t, poses, read_relations(args.relations), args.tolerance)
+    m = relations_metric(t, poses, read_relations(args.relations), args.tolerance, args.exact)
     m["trajectory"], m["relations_file"] = args.trajectory, args.relations
     _print(m, args.json)
     return 0
