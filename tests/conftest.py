@@ -25,6 +25,21 @@ def relations(name: str) -> Path:
     return p
 
 
+def indeterminate_graph(g):
+    """Four nodes into the pose graph ``g`` (in-process or in the solver process), two of them held a
+    thousand million times tighter to their neighbours than the rest (information spanning 1e16):
+    iSAM2's undamped elimination calls this system indeterminate. Returns ``g``."""
+    import numpy as np
+
+    for j in range(4):
+        g.add_node(j, [j, 0.1 * j, 0.05 * j])
+    g.add_intra(0, 1, [1, 0, 0], np.diag([1e-16] * 3))
+    g.add_intra(1, 2, [1, 0, 0], np.diag([1e-16] * 3))
+    g.add_intra(0, 3, [3, 0, 0], np.eye(3))
+    g.add_intra(2, 3, [1, 0, 0], np.eye(3))
+    return g
+
+
 @pytest.fixture
 def flaser_line():
     def make(ranges, pose=(0.0, 0.0, 0.0), odom=None, ts="100.000000", logger="0.5"):

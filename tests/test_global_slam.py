@@ -12,7 +12,7 @@ from slam2d.backend.global_slam import GlobalSlam
 from slam2d.io.mcap import McapLog
 from slam2d.slam import Slam
 
-from conftest import BUNDLED
+from conftest import BUNDLED, indeterminate_graph
 
 
 def square_loop(n=40, side=10.0):
@@ -102,14 +102,7 @@ def test_an_indeterminate_isam2_update_falls_back_to_levenberg_marquardt(caplog)
     graph is then solved by Levenberg-Marquardt, as the batch graph is, from then on too; loops
     added later still close."""
     def build(incremental):
-        g = PoseGraph(1.0, 1e3, 1e3, incremental=incremental)
-        for j in range(4):
-            g.add_node(j, [j, 0.1 * j, 0.05 * j])
-        g.add_intra(0, 1, [1, 0, 0], np.diag([1e-16] * 3))
-        g.add_intra(1, 2, [1, 0, 0], np.diag([1e-16] * 3))
-        g.add_intra(0, 3, [3, 0, 0], np.eye(3))
-        g.add_intra(2, 3, [1, 0, 0], np.eye(3))
-        return g
+        return indeterminate_graph(PoseGraph(1.0, 1e3, 1e3, incremental=incremental))
 
     plain = build(True)
     with pytest.raises(RuntimeError, match="Indeterminate"):

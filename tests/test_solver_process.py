@@ -8,6 +8,8 @@ from slam2d.backend.pose_graph import PoseGraph
 from slam2d.backend.solver_process import RemotePoseGraph, SolverError
 from slam2d.geometry import between, compose
 
+from conftest import indeterminate_graph
+
 
 def _trajectory(n=60, seed=3):
     """A noisy walk around a square (returns to its start) and its noisy odometry estimate."""
@@ -98,13 +100,7 @@ def test_the_solver_process_solves_an_indeterminate_graph_and_says_so_on_stderr(
     SolverError, the in-process batch numbers, and the fallback's warning on the caller's stderr in
     the CLI's form."""
     def build(g):
-        for j in range(4):
-            g.add_node(j, [j, 0.1 * j, 0.05 * j])
-        g.add_intra(0, 1, [1, 0, 0], np.diag([1e-16] * 3))
-        g.add_intra(1, 2, [1, 0, 0], np.diag([1e-16] * 3))
-        g.add_intra(0, 3, [3, 0, 0], np.eye(3))
-        g.add_intra(2, 3, [1, 0, 0], np.eye(3))
-        g.optimize()
+        indeterminate_graph(g).optimize()
         return g
 
     remote = build(RemotePoseGraph(1.0, 1e3, 1e3, incremental=True))
