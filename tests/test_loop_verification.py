@@ -5,7 +5,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from slam2d.backend.consistency import ConsistencyParams, candidate_pairs, fresh_pairs, inconsistent, pair_tests
+from slam2d.backend.consistency import ConsistencyParams, candidate_pairs, fresh_pairs, inconsistent, loop_errors, pair_tests
 from slam2d.backend.loop_closure import LoopMatch, SubmapMatcher
 from slam2d.config import SlamConfig
 from slam2d.eval.loops import agrees
@@ -201,6 +201,77 @@ def test_pair_consistency_flags_the_contradicting_loop():
     # two loops that contradict each other and nothing else: undecided here (the residual check judges)
     two = pair_tests(rel[:2], local[anchors[:2]], local[nodes[:2]], path[anchors[:2]], path[nodes[:2]], ConsistencyParams())
     assert two.dense()[0, 1] == -1 and inconsistent(two, np.array([0.7, 0.9])) == []
+
+
+def _straight_loops(n=40):
+    """``n`` true loops of a robot that drives a straight line, out of sight for 100 m, and back along
+    it, one metre apart: loop i ties the return pass's node at x = i to the first pass's node there.
+    Local SLAM has no drift here, so every cycle closes exactly."""
+    line = np.array([[x, 0.0, 0.0] for x in np.arange(n, dtype=float)])
+    rel = np.zeros((n, 3))
+    return rel, line, line.copy(), np.arange(n, dtype=float), 100.0 + np.arange(n, dtype=float)
+
+
+def test_a_loop_that_every_cycle_puts_off_is_removed_though_far_partners_tolerate_it():
+    """A loop 0.6 m off contradicts its near partners (chains under 10 m, tolerances under 0.6 m) but
+    passes the looser tolerance of more partners further along the chain, so counting keeps it. All
+    its cycles put it the same 0.6 m off: the tolerance-weighted mean of its cycle errors removes it;
+    a true loop with two such partners nearby keeps a diluted mean and stays; the same for a loop
+    whose rotation alone is off (3.4°)."""
+    p = ConsistencyParams()
+    scores = np.full(40, 0.8)
+    rel, la, lj, pa, pj = _straight_loops()
+    assert inconsistent(pair_tests(rel, la, lj, pa, pj, p), scores) == []
+    one = rel.copy()
+    one[5] = compose(one[5], [0.6, 0.0, 0.0])
+    t = pair_tests(one, la, lj, pa, pj, p)
+    m = t.dense()
+    assert np.sum(m[5] == -1) < np.sum(m[5] == 1)  # more partners tolerate it than contradict it
+    out = inconsistent(t, scores)
+    assert [i for i, _ in out] == [5] and "times its tolerance" in out[0][1]
+    means = loop_errors(t, np.ones(40, bool))
+    assert means[5] == pytest.approx(0.6 / p.tol_t)  # every cycle puts it the same 0.6 m off
+    assert means[7] < 0.5  # a true neighbour: only its cycle with loop 5 is off
+    two = one.copy()
+    two[6] = compose(two[6], [0.6, 0.0, 0.0])
+    assert sorted(i for i, _ in inconsistent(pair_tests(two, la, lj, pa, pj, p), scores)) == [5, 6]
+    turned = rel.copy()
+    turned[20] = compose(turned[20], [0.0, 0.0, 0.06])
+    t = pair_tests(turned, la, lj, pa, pj, p)
+    assert np.sum(t.dense()[20] == -1) < np.sum(t.dense()[20] == 1)
+    assert [i for i, _ in inconsistent(t, scores)] == [20]
+
+
+def test_a_loop_contradicted_once_is_left_to_the_residual_check_whatever_its_mean():
+    """Two loops that contradict each other and have no other partner: neither can be told false."""
+    p = ConsistencyParams()
+    rel, la, lj, pa, pj = _straight_loops(2)
+    rel[1] = compose(rel[1], [1.0, 0.0, 0.0])
+    t = pair_tests(rel, la, lj, pa, pj, p)
+    assert loop_errors(t, np.ones(2, bool))[1] > 1 and inconsistent(t, np.array([0.7, 0.9])) == []
+
+
+def test_the_doubt_of_a_recovered_step_on_a_leg_widens_the_pair_tolerance():
+    """On the return pass local SLAM recovered from a lost match with a jump of 0.8 m that the truth
+    does not have (the recovery chose wrong, and said by how much it might be off: its doubt). Every
+    loop is true, but the cycles of loops on either side of the jump carry the jump. With the drift
+    budgets (``DriftBound``: drift per metre plus each step's doubt) the pair tolerance covers it
+    and no loop is removed; with drift per metre alone, those pairs contradict and true loops go."""
+    p = ConsistencyParams()
+    rel, la, lj, pa, pj = _straight_loops()
+    lj = lj.copy()
+    lj[20:, 0] += 0.8  # local poses after the jump
+    doubt = np.where(np.arange(40) >= 20, 0.8, 0.0)
+    ba = np.c_[p.drift_t * pa, p.drift_r * pa]
+    bj = np.c_[p.drift_t * pj + doubt, p.drift_r * pj]
+    with_doubt = pair_tests(rel, la, lj, pa, pj, p, ba, bj)
+    assert np.all(with_doubt.consistent)
+    assert inconsistent(with_doubt, np.full(40, 0.8)) == []
+    without = pair_tests(rel, la, lj, pa, pj, p)
+    assert not np.all(without.consistent) and inconsistent(without, np.full(40, 0.8)) != []
+    # budgets of drift per metre alone give the drift-per-metre verdicts
+    plain = pair_tests(rel, la, lj, pa, pj, p, ba, np.c_[p.drift_t * pj, p.drift_r * pj])
+    assert np.array_equal(plain.dense(), without.dense())
 
 
 def _all_pairs_reference(rel, la, lj, pa, pj, p):

@@ -8,11 +8,23 @@ true, up to local SLAM's drift along the two local legs (|path a₁…a₂| + |p
 *tested* when those legs are short (``max_chain``), and *consistent* when the cycle's error is
 below ``tol_t + drift_t · chain`` metres and ``tol_r + drift_r · chain`` radians. The judge is
 independent of the pose-graph solution: it uses only local SLAM poses and the loops themselves.
+Where local SLAM could not vouch for a step on either leg (a recovered or forced pose), the step's
+doubt is added to the tolerance: the drift bound's budget (``drift.py``) along the two legs
+replaces ``drift · chain`` when the budgets are given.
 
 Loops are then removed greedily, most contradicted first, while some loop is contradicted by
 more tested partners than support it, and by at least two (one contradiction between two loops
 cannot say which of them is false: that is left to the residual check); with ``min_support`` > 0, a loop that has fewer consistent
 partners than that is removed too (a single loop that nothing confirms).
+
+A count treats a partner far along the chain, whose loose tolerance passes an error it could not
+tell from drift, as much support as a near partner's contradiction. So each loop's own error is
+also estimated from all its tested partners: the mean of their cycle errors (seen from its anchor),
+each weighted by the inverse square of its tolerance, as the tolerances are bounds of the drift
+along each chain. A wrong loop puts the same error into every cycle it closes, near or far; a right
+one only its partners' errors, which the mean dilutes. A loop contradicted by at least two partners
+is removed, largest first, while its mean error exceeds both the base tolerance and the mean's own
+bound (the tolerances combined: 1/sqrt(sum of 1/tol²)), in translation or in rotation.
 """
 from __future__ import annotations
 
@@ -44,6 +56,16 @@ class PairTests:
     src: np.ndarray
     dst: np.ndarray
     consistent: np.ndarray
+    loops: tuple | None = None  # (rel, la, lj, pa, pj, ba, bj) of the n loops, for ``cycles``
+    p: ConsistencyParams | None = None
+
+    def cycles(self, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(E, 3) the cycle errors of ``edges`` (indices into src/dst), each seen from its src loop's
+        anchor, and (E, 2) their tolerances (m, rad): computed when asked, as only the loops under
+        suspicion need them."""
+        rel, la, lj, pa, pj, ba, bj = self.loops
+        i, k = self.src[edges], self.dst[edges]
+        return _cycle(i, k, rel, la, lj).reshape(-1, 3), _tolerance(i, k, pa, pj, ba, bj, self.p)
 
     def dense(self) -> np.ndarray:
         """(n, n) int8: +1 tested and consistent, -1 tested and inconsistent, 0 untested (incl. diagonal)."""
@@ -93,15 +115,18 @@ def fresh_pairs(pa: np.ndarray, fresh: np.ndarray, max_chain: float) -> tuple[np
 
 
 def pair_tests(rel: np.ndarray, la: np.ndarray, lj: np.ndarray, pa: np.ndarray, pj: np.ndarray,
-               p: ConsistencyParams) -> PairTests:
+               p: ConsistencyParams, ba: np.ndarray | None = None, bj: np.ndarray | None = None) -> PairTests:
     """Test every pair of loops whose two local legs are short enough (module docstring).
 
     ``rel`` (L, 3) loop relative poses (node in anchor frame); ``la``/``lj`` (L, 3) local SLAM poses of
-    the anchors / nodes; ``pa``/``pj`` (L,) their path length along the local trajectory [m]."""
+    the anchors / nodes; ``pa``/``pj`` (L,) their path length along the local trajectory [m];
+    ``ba``/``bj`` (L, 2) their cumulative drift budgets (m, rad; ``DriftBound.budget``), or None for
+    ``drift · path``."""
     n = len(rel)
-    if n < 2:
-        return _both_ways(n)
-    return _both_ways(n, *pair_tests_of(*candidate_pairs(pa, p.max_chain), rel, la, lj, pa, pj, p))
+    t = _both_ways(n) if n < 2 else _both_ways(n, *pair_tests_of(*candidate_pairs(pa, p.max_chain), rel, la, lj,
+                                                                      pa, pj, p, ba, bj))
+    t.loops, t.p = (rel, la, lj, pa, pj, ba, bj), p
+    return t
 
 
 def _both_ways(n, i=None, k=None, ok=None) -> PairTests:
@@ -112,13 +137,29 @@ def _both_ways(n, i=None, k=None, ok=None) -> PairTests:
     return PairTests(n, np.concatenate([i, k]), np.concatenate([k, i]), np.concatenate([ok, ok]))
 
 
-def pair_tests_of(i, k, rel, la, lj, pa, pj, p: ConsistencyParams):
+def _cycle(i, k, rel, la, lj):
+    """The error of the cycle of loops ``i`` and ``k``, seen from loop i's anchor."""
+    return compose(compose(compose(rel[i], between(lj[i], lj[k])), inverse(rel[k])), between(la[k], la[i]))
+
+
+def _tolerance(i, k, pa, pj, ba, bj, p: ConsistencyParams) -> np.ndarray:
+    """(E, 2) what the cycles of loops ``i`` and ``k`` may be off (m, rad): the base tolerance plus
+    the drift along the two legs, from the budgets when given (with the doubt of every step on
+    them), else per metre of path."""
+    if ba is None:
+        chain = np.abs(pa[i] - pa[k]) + np.abs(pj[i] - pj[k])
+        return np.c_[p.tol_t + p.drift_t * chain, p.tol_r + p.drift_r * chain].reshape(-1, 2)
+    return np.array([p.tol_t, p.tol_r]) + (np.abs(ba[i] - ba[k]) + np.abs(bj[i] - bj[k])).reshape(-1, 2)
+
+
+def pair_tests_of(i, k, rel, la, lj, pa, pj, p: ConsistencyParams, ba=None, bj=None):
     """The candidate pairs (``i``, ``k``) whose chain is short enough, and whether each cycle closed."""
     chain = np.abs(pa[i] - pa[k]) + np.abs(pj[i] - pj[k])
     tested = chain <= p.max_chain
-    i, k, chain = i[tested], k[tested], chain[tested]
-    e = compose(compose(compose(rel[i], between(lj[i], lj[k])), inverse(rel[k])), between(la[k], la[i]))
-    ok = (np.hypot(e[:, 0], e[:, 1]) <= p.tol_t + p.drift_t * chain) & (np.abs(e[:, 2]) <= p.tol_r + p.drift_r * chain)
+    i, k = i[tested], k[tested]
+    e = _cycle(i, k, rel, la, lj).reshape(-1, 3)
+    tol = _tolerance(i, k, pa, pj, ba, bj, p)
+    ok = (np.hypot(e[:, 0], e[:, 1]) <= tol[:, 0]) & (np.abs(e[:, 2]) <= tol[:, 1])
     return i, k, ok
 
 
@@ -135,15 +176,15 @@ class PairCache:
         self.b = np.zeros(0, dtype=np.int64)
         self.ok = np.zeros(0, dtype=bool)
 
-    def tests(self, ids: np.ndarray, rel, la, lj, pa, pj) -> PairTests:
+    def tests(self, ids: np.ndarray, rel, la, lj, pa, pj, ba=None, bj=None) -> PairTests:
         """``pair_tests`` of the loops ``ids`` (increasing in the order they were added; arrays as there)."""
         ids = np.asarray(ids, dtype=np.int64)
         n = len(ids)
         if n < 2:
-            return _both_ways(n)
+            return self._with_loops(_both_ways(n), rel, la, lj, pa, pj, ba, bj)
         if ids[-1] > self.seen:
             i, k = fresh_pairs(pa, ids > self.seen, self.p.max_chain)
-            t = pair_tests_of(i, k, rel, la, lj, pa, pj, self.p)
+            t = pair_tests_of(i, k, rel, la, lj, pa, pj, self.p, ba, bj)
             self.a = np.concatenate([self.a, ids[t[0]]])
             self.b = np.concatenate([self.b, ids[t[1]]])
             self.ok = np.concatenate([self.ok, t[2]])
@@ -152,7 +193,37 @@ class PairCache:
         index[ids] = np.arange(n)
         i, k = index[self.a], index[self.b]
         live = (i >= 0) & (k >= 0)
-        return _both_ways(n, i[live], k[live], self.ok[live])
+        return self._with_loops(_both_ways(n, i[live], k[live], self.ok[live]), rel, la, lj, pa, pj, ba, bj)
+
+    def _with_loops(self, t: PairTests, *loops) -> PairTests:
+        t.loops, t.p = loops, self.p
+        return t
+
+
+def loop_errors(t: PairTests, alive: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
+    """(n,) each loop's mean cycle error over its alive tested partners, as a multiple of what it
+    may be (module docstring): the larger of translation and rotation; 0 without partners, and for
+    the loops not in ``which`` (a mask; default all)."""
+    live = alive[t.dst] & alive[t.src]
+    if which is not None:
+        live &= which[t.src]
+    edges = np.flatnonzero(live)
+    out = np.zeros(t.n)
+    if not len(edges):
+        return out
+    src = t.src[edges]
+    e, tol = t.cycles(edges)
+    for cols, base, c in (([0, 1], t.p.tol_t, 0), ([2], t.p.tol_r, 1)):
+        w = 1.0 / tol[:, c] ** 2
+        wsum = np.bincount(src, w, minlength=t.n)
+        has = wsum > 0
+        mean = np.zeros((t.n, len(cols)))
+        for m, col in enumerate(cols):
+            mean[has, m] = np.bincount(src, w * e[:, col], minlength=t.n)[has] / wsum[has]
+        bound = np.full(t.n, np.inf)
+        bound[has] = np.maximum(base, 1.0 / np.sqrt(wsum[has]))
+        out = np.maximum(out, np.linalg.norm(mean, axis=1) / bound)
+    return out
 
 
 def inconsistent(t: PairTests, scores: np.ndarray, min_support: int = 0) -> list[tuple[int, str]]:
@@ -175,6 +246,14 @@ def inconsistent(t: PairTests, scores: np.ndarray, min_support: int = 0) -> list
             alive[worst] = False
             removed.append((worst, f"inconsistent with {neg[worst]} of {neg[worst] + pos[worst]} loops through the local chain"))
             continue
+        suspects = alive & (neg >= 2)
+        ratio = loop_errors(t, alive, suspects) if suspects.any() else np.zeros(n)
+        worst = int(np.lexsort((scores, -ratio))[0])
+        if ratio[worst] > 1.0:
+            alive[worst] = False
+            removed.append((worst, f"its cycles with {neg[worst] + pos[worst]} loops through the local chain "
+                                   f"({neg[worst]} inconsistent) put it {ratio[worst]:.1f} times its tolerance off"))
+            continue
         break
     if min_support > 0 and n:
         pos, _ = support()
@@ -183,4 +262,4 @@ def inconsistent(t: PairTests, scores: np.ndarray, min_support: int = 0) -> list
     return removed
 
 
-__all__ = ["ConsistencyParams", "PairCache", "PairTests", "candidate_pairs", "fresh_pairs", "pair_tests", "inconsistent"]
+__all__ = ["ConsistencyParams", "PairCache", "PairTests", "candidate_pairs", "fresh_pairs", "pair_tests", "inconsistent", "loop_errors"]

@@ -630,12 +630,15 @@ class GlobalSlam:
         for f in loops:
             if f.index not in rows:
                 a, j = self.nodes[f.anchor], self.nodes[f.node]
+                budget = self.drift.budget()
                 rows[f.index] = (*map(float, f.relative), *map(float, a["local"]), *map(float, j["local"]),
-                                 a["path"], j["path"], f.record.get("score") or 0.0)
-        m = np.array([rows[f.index] for f in loops], dtype=float).reshape(-1, 12)
+                                 a["path"], j["path"], f.record.get("score") or 0.0,
+                                 *budget[self.drift.order[f.anchor]], *budget[self.drift.order[f.node]])
+        m = np.array([rows[f.index] for f in loops], dtype=float).reshape(-1, 16)
         rel, la, lj, pa, pj, scores = m[:, 0:3], m[:, 3:6], m[:, 6:9], m[:, 9], m[:, 10], m[:, 11]
+        ba, bj = m[:, 12:14], m[:, 14:16]
         ids = np.array([f.index for f in loops], dtype=np.int64)
-        for i, reason in inconsistent(self._pairs.tests(ids, rel, la, lj, pa, pj), scores, p.min_support):
+        for i, reason in inconsistent(self._pairs.tests(ids, rel, la, lj, pa, pj, ba, bj), scores, p.min_support):
             self.graph.remove_loop(loops[i], reason)
             self.consistency_removed += 1
 
