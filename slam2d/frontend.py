@@ -260,7 +260,13 @@ class LocalSlam:
     def _better_where_observed(submap, grid, wide, m, points) -> bool:
         if m.on_edge:  # not a peak: nothing to compare with
             return True
-        common = observed_scores(submap.grid, grid, [wide.pose, m.pose], points)
+        return LocalSlam._scores_higher_where_observed(submap, grid, wide.pose, m.pose, points)
+
+    @staticmethod
+    def _scores_higher_where_observed(submap, grid, pose, other, points) -> bool:
+        """Whether ``points`` at ``pose`` score higher than at ``other`` on the points both put on
+        observed cells of ``submap`` (``observed_scores``)."""
+        common = observed_scores(submap.grid, grid, [pose, other], points)
         return common is not None and common[0] > common[1]
 
     def _plausible_jump(self, pose, predicted) -> bool:
@@ -304,10 +310,8 @@ class LocalSlam:
         # can also outscore it). A clear peak there replaces the prediction (a weak match below
         # ``limit``) where the prediction's own error bound holds it and it explains the scan
         # better than the prediction on the points both put on observed cells
-        if not m.on_edge or wide.on_edge or wide.score < least or not self._plausible_jump(wide.pose, predicted):
-            return False
-        common = observed_scores(submap.grid, grid, [wide.pose, predicted], points)
-        return common is not None and common[0] > common[1]
+        return (m.on_edge and not wide.on_edge and wide.score >= least and self._plausible_jump(wide.pose, predicted)
+                and self._scores_higher_where_observed(submap, grid, wide.pose, predicted, points))
 
     def _recover(self, grid, scan, predicted, points, limit, floor=0.0):
         """Branch-and-bound over the recovery windows around each distinct prediction, in the order the

@@ -125,7 +125,12 @@ def pair_tests(rel: np.ndarray, la: np.ndarray, lj: np.ndarray, pa: np.ndarray, 
     n = len(rel)
     t = _both_ways(n) if n < 2 else _both_ways(n, *pair_tests_of(*candidate_pairs(pa, p.max_chain), rel, la, lj,
                                                                       pa, pj, p, ba, bj))
-    t.loops, t.p = (rel, la, lj, pa, pj, ba, bj), p
+    return _with_loops(t, p, rel, la, lj, pa, pj, ba, bj)
+
+
+def _with_loops(t: PairTests, p: ConsistencyParams, *loops) -> PairTests:
+    """``t`` with what ``PairTests.cycles`` reads: the loops' arrays and the parameters."""
+    t.loops, t.p = loops, p
     return t
 
 
@@ -181,7 +186,7 @@ class PairCache:
         ids = np.asarray(ids, dtype=np.int64)
         n = len(ids)
         if n < 2:
-            return self._with_loops(_both_ways(n), rel, la, lj, pa, pj, ba, bj)
+            return _with_loops(_both_ways(n), self.p, rel, la, lj, pa, pj, ba, bj)
         if ids[-1] > self.seen:
             i, k = fresh_pairs(pa, ids > self.seen, self.p.max_chain)
             t = pair_tests_of(i, k, rel, la, lj, pa, pj, self.p, ba, bj)
@@ -193,11 +198,7 @@ class PairCache:
         index[ids] = np.arange(n)
         i, k = index[self.a], index[self.b]
         live = (i >= 0) & (k >= 0)
-        return self._with_loops(_both_ways(n, i[live], k[live], self.ok[live]), rel, la, lj, pa, pj, ba, bj)
-
-    def _with_loops(self, t: PairTests, *loops) -> PairTests:
-        t.loops, t.p = loops, self.p
-        return t
+        return _with_loops(_both_ways(n, i[live], k[live], self.ok[live]), self.p, rel, la, lj, pa, pj, ba, bj)
 
 
 def loop_errors(t: PairTests, alive: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:

@@ -627,10 +627,10 @@ class GlobalSlam:
             return
         p = self._pairs.p
         rows = self._loop_rows  # what the test reads of a loop never changes: one row per loop, made once
+        budget = self.drift.budget()
         for f in loops:
             if f.index not in rows:
                 a, j = self.nodes[f.anchor], self.nodes[f.node]
-                budget = self.drift.budget()
                 rows[f.index] = (*map(float, f.relative), *map(float, a["local"]), *map(float, j["local"]),
                                  a["path"], j["path"], f.record.get("score") or 0.0,
                                  *budget[self.drift.order[f.anchor]], *budget[self.drift.order[f.node]])
