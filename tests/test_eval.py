@@ -203,6 +203,17 @@ def test_loops_cli_with_ground_truth_reference(tmp_path):
     assert out["accepted"] == 60
     assert (tmp_path / "loops_on_map.png").exists() and (tmp_path / "loop_scores.png").exists()
     assert sum(out["score_histogram"]["true"]) == 30
+    # a plot folder that does not exist yet is made; one that cannot be is a one-line error
+    r = slam2d("eval", "loops", tmp_path, "--plot-dir", tmp_path / "new" / "plots")
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "new" / "plots" / "loops_on_map.png").exists()
+    assert (tmp_path / "new" / "plots" / "loop_scores.png").exists()
+    (tmp_path / "taken").write_text("a file, not a folder")
+    r = slam2d("eval", "loops", tmp_path, "--plot-dir", tmp_path / "taken" / "plots")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "cannot write the plot" in r.stderr, r.stderr
+    r = slam2d("eval", "ate", tmp_path / "trajectory.txt", tmp_path / "trajectory.txt", "--plot", tmp_path / "ate" / "a.png")
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "ate" / "a.png").exists() and (tmp_path / "ate" / "a_error.png").exists()
 
 
 def test_loops_reads_corrected_carmen_reference(tmp_path):

@@ -15,6 +15,21 @@ def _plt():
     return plt
 
 
+def _save(plt, fig, path):
+    """Write ``fig`` to ``path`` as PNG, its folder made first; a folder that cannot be made or written is
+    the user's one-line error (``UsageError``), not a traceback."""
+    from slam2d.errors import UsageError
+
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(path, dpi=110)
+    except OSError as e:
+        raise UsageError(f"{path}: cannot write the plot ({e.strerror or e})") from None
+    finally:
+        plt.close(fig)
+
+
 def plot_trajectories(path, est: np.ndarray, ref: np.ndarray | None = None, title="", labels=("slam2d", "reference")):
     plt = _plt()
     fig, ax = plt.subplots(figsize=(7, 7))
@@ -27,8 +42,7 @@ def plot_trajectories(path, est: np.ndarray, ref: np.ndarray | None = None, titl
     ax.set_title(title)
     ax.legend(loc="best")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(plt, fig, path)
 
 
 def plot_error_over_time(path, t: np.ndarray, err: np.ndarray, ylabel="error [m]", title=""):
@@ -40,8 +54,7 @@ def plot_error_over_time(path, t: np.ndarray, err: np.ndarray, ylabel="error [m]
     ax.set_title(title)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(plt, fig, path)
 
 
 def read_map(run_dir: Path):
@@ -78,8 +91,7 @@ def plot_loops(path, run_dir: Path, poses: np.ndarray, constraints: list[dict], 
     ax.set_aspect("equal")
     ax.set_title(title or "loop closures (green true, red false)")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(plt, fig, path)
 
 
 def plot_score_histogram(path, hist: dict, title=""):
@@ -95,5 +107,4 @@ def plot_score_histogram(path, hist: dict, title=""):
     ax.set_title(title)
     ax.legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(plt, fig, path)
