@@ -153,4 +153,5 @@ class LoopFactor:
     relative: np.ndarray
     record: dict        # the constraints.jsonl record, updated with the outcome
     base: object = None  # its Gaussian noise model before the robust wrapper (in-process graphs only)
+    heading_only: bool = False  # a heading constraint: its translation carries no information
 

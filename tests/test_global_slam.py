@@ -447,14 +447,16 @@ def test_a_fresh_start_no_loop_ties_back_is_reported_by_the_health_check():
 
 def test_a_loop_ties_a_fresh_start_when_it_spans_it():
     """``untied_fresh_starts``: a fresh start is tied by a loop in the graph whose two nodes lie on
-    either side of it (the node itself counts as after), whichever end is the anchor."""
+    either side of it (the node itself counts as after), whichever end is the anchor; a heading
+    constraint ties no position, so it ties none."""
     from types import SimpleNamespace
 
     gs = GlobalSlam(SlamConfig())
     gs.fresh_starts = [100, 200, 300]
-    gs.graph = SimpleNamespace(loops=[SimpleNamespace(anchor=250, node=150),   # spans 200
-                                      SimpleNamespace(anchor=90, node=100),    # ends at 100: spans it
-                                      SimpleNamespace(anchor=310, node=390)])  # after 300 only
+    gs.graph = SimpleNamespace(loops=[SimpleNamespace(anchor=250, node=150, heading_only=False),   # spans 200
+                                      SimpleNamespace(anchor=90, node=100, heading_only=False),    # ends at 100: spans it
+                                      SimpleNamespace(anchor=310, node=390, heading_only=False),   # after 300 only
+                                      SimpleNamespace(anchor=280, node=320, heading_only=True)])   # spans 300: heading only
     assert gs.untied_fresh_starts() == [300]
     gs.graph = SimpleNamespace(loops=[])
     assert gs.untied_fresh_starts() == [100, 200, 300]

@@ -534,3 +534,81 @@ def test_fused_constraint_adds_informations_and_weights_the_means():
     np.testing.assert_allclose(fc, c1 / 2, rtol=1e-12)
     one = _fuse([(z, c1)])
     assert one[0] is z and one[1] is c1
+
+
+def test_heading_margin_equals_the_best_score_per_heading_compared_by_hand():
+    """``heading_margin``: the best score within the exclusion of the window's centre heading, anywhere in
+    the window, minus the best at every other heading; against a loop over every cell."""
+    from slam2d.backend.loop_closure import heading_margin
+
+    rng = np.random.default_rng(5)
+    for _ in range(50):
+        n_ang, w, ex = int(rng.integers(1, 6)), int(rng.integers(0, 4)), int(rng.integers(0, 3))
+        scores = rng.random((2 * n_ang + 1, 2 * w + 1, 2 * w + 1))
+        near = [scores[a, iy, ix] for a in range(2 * n_ang + 1) for iy in range(2 * w + 1) for ix in range(2 * w + 1)
+                if abs(a - n_ang) <= ex]
+        far = [scores[a, iy, ix] for a in range(2 * n_ang + 1) for iy in range(2 * w + 1) for ix in range(2 * w + 1)
+               if abs(a - n_ang) > ex]
+        got = heading_margin(scores, ex)
+        assert (math.isnan(got) and not far) or got == pytest.approx(max(near) - max(far), abs=0.0)
+
+
+@SCORE_GRIDS
+def test_a_corridor_match_fixes_the_heading_where_it_cannot_fix_the_position(field_sigma):
+    """Two long parallel walls: poses slid along them score alike, so the match is ambiguous and no
+    loop; but only poses at its heading do, so the heading margin clears min_margin and the refined
+    heading is the true one. A round room is the opposite: any heading scores alike there."""
+    segs = np.array([[-30.0, 1.0, 30.0, 1.0], [-30.0, -1.0, 30.0, -1.0]])
+    m = SubmapMatcher(submap(segs, [np.array([x, 0.0, 0.3]) for x in np.linspace(-3, 3, 13)]), 4, field_sigma=field_sigma)
+    truth = np.array([0.4, 0.1, 0.2])
+    res = m.match(scan_points(segs, truth, 8.0), truth + [0.3, 0.05, 0.02], 1.0, math.radians(5), 0.55, REFINE, 0.02)
+    assert res.reason.startswith("ambiguous") and res.heading_margin >= 0.02, (res.reason, res.heading_margin)
+    assert abs(math.remainder(res.pose[2] - truth[2], 2 * math.pi)) < math.radians(0.5)
+    assert abs(res.pose[1] - truth[1]) < 0.05  # across the corridor it is fixed too; along it, not
+    # a round room (a 48-gon of radius 3 m): every heading fits
+    k = np.arange(48) * 2 * math.pi / 48
+    ring = np.c_[3 * np.cos(k), 3 * np.sin(k), 3 * np.cos(k + 2 * math.pi / 48), 3 * np.sin(k + 2 * math.pi / 48)]
+    m = SubmapMatcher(submap(ring, [np.array([0.0, 0.0, a]) for a in np.linspace(0, 1, 5)]), 4, field_sigma=field_sigma)
+    centre = np.array([0.0, 0.0, 0.4])
+    res = m.match(scan_points(ring, centre, 8.0), centre + [0.02, 0.0, 0.03], 0.3, math.radians(5), 0.3, REFINE, 0.02)
+    assert res is not None and res.heading_margin < 0.02, res.heading_margin
+
+
+@pytest.mark.parametrize("remote", [False, True], ids=["in_process", "solver_process"])
+def test_a_heading_constraint_turns_the_map_without_pulling_it(remote):
+    """A straight chain that local SLAM bent by 8° halfway: a heading constraint between its ends with a
+    translation 40 m off (it says nothing there) turns the second half back, moves no node along its
+    translation, and is not removed for its translation residual; a loop with the same numbers is."""
+    from slam2d.backend.pose_graph import PoseGraph
+    from slam2d.backend.solver_process import RemotePoseGraph
+
+    n, kink = 40, math.radians(8.0)
+    est = [np.zeros(3)]
+    for k in range(1, n):
+        est.append(compose(est[-1], [1.0, 0.0, kink if k == n // 2 else 0.0]))
+    bad = between(est[0], est[-1]) + [40.0, -30.0, 0.0]
+    bad[2] = 0.0  # the true relative heading: the chain is straight
+    for heading_only, kept in ((True, True), (False, False)):
+        g = (RemotePoseGraph if remote else PoseGraph)(huber_scale=5.0, max_residual_trans=0.2,
+                                                      max_residual_rot=math.radians(1.0))
+        for k, p in enumerate(est):
+            g.add_node(k, p)
+            if k:  # tight steps, but for the kinked one, which local SLAM could not vouch for
+                loose = math.radians(10.0) if k == n // 2 else math.radians(0.05)
+                g.add_intra(k - 1, k, between(est[k - 1], est[k]), np.diag([1e-4, 1e-4, loose ** 2]))
+        rec = {}
+        cov = np.diag([1e6, 1e6, math.radians(0.3) ** 2]) if heading_only else np.diag([1e-4, 1e-4, math.radians(0.3) ** 2])
+        g.add_loop(0, n - 1, bad, cov, rec, heading_only=heading_only)
+        g.optimize()
+        if hasattr(g, "close"):
+            ids, poses = g.all_node_poses()
+            g.close()
+        else:
+            ids, poses = g.all_node_poses()
+        assert (len(g.loops) == 1) is kept, (heading_only, rec)
+        if heading_only:
+            assert abs(math.degrees(math.remainder(poses[-1][2] - poses[0][2], 2 * math.pi))) < 0.5  # turned back
+            # the second half turned about the kink, the steps kept their lengths: no pull along the 40 m
+            steps = np.hypot(*np.diff(poses[:, :2], axis=0).T)
+            assert np.allclose(steps, 1.0, atol=1e-3)
+            assert np.max(np.abs(poses[:, 1])) < 0.05  # straight again, on the x axis

@@ -190,3 +190,60 @@ def test_coarse_match_finds_nothing_where_the_content_lies_off_the_map():
     far = np.array([200.0, 200.0, 0.0])  # the window lies wholly outside the older submap
     assert coarse_match(content, centre, far, target, 3.0, math.radians(10.0)) is None
     assert coarse_match(content, centre, centre, target, 3.0, math.radians(10.0)) is not None
+
+
+def test_a_return_along_a_featureless_corridor_adds_heading_constraints_that_turn_it_back():
+    """Two walls 2 m apart and 120 m long, no end in range: the robot maps a stretch, drives 2 × 60 m
+    elsewhere, and maps it again on the way back, local SLAM's frame turned by 6° and slid along. The
+    wide search finds the corridor, but every node match slides along it (ambiguous, no loop); their
+    heading holds, and the heading constraints turn the return back, without a position loop."""
+    from types import SimpleNamespace
+
+    from slam2d.backend.global_slam import GlobalSlam
+    from slam2d.config import SlamConfig
+
+    segs = np.array([[-60.0, 1.0, 60.0, 1.0], [-60.0, -1.0, 60.0, -1.0]])
+    for enabled in (True, False):
+        cfg = SlamConfig()
+        cfg.loop_closure.wide_heading_constraints = enabled
+        gs = GlobalSlam(cfg)
+        first = [np.array([x, 0.0, 0.0]) for x in np.linspace(-10.0, 10.0, 21)]
+        again = [np.array([x, 0.0, math.pi]) for x in np.linspace(9.0, -9.0, 19)]
+        mid = np.zeros(3)
+        drift = compose(compose(mid, np.array([2.5, 0.0, math.radians(6.0)])), inverse(mid))
+
+        def node(j, true, local, submap):
+            scan = SimpleNamespace(index=j, timestamp=float(j), timestamp_text=None)
+            gs.add_node(scan, local, _scan_points(segs, true, 8.0), None, [(submap.index, submap.local_pose)])
+            submap.node_indices.append(j)
+
+        s0 = _submap(0, segs, first, first)
+        for j, p in enumerate(first):
+            node(j, p, p, s0)
+        gs.add_finished_submap(s0)
+        j = len(first)
+        far = SimpleNamespace(index=1, local_pose=np.array([0.0, 60.0, 0.0]), node_indices=[])
+        gs.add_node(SimpleNamespace(index=j, timestamp=float(j), timestamp_text=None), far.local_pose,
+                    np.zeros((0, 2)), None, [(far.index, far.local_pose)])
+        j += 1
+        local = [compose(drift, p) for p in again]
+        s3 = _submap(3, segs, again, local)
+        first_again = j
+        for t, p in zip(again, local):
+            node(j, t, p, s3)
+            j += 1
+        gs.add_finished_submap(s3)
+        gs.optimize()
+        heading = [r for r in gs.records if "heading_constraint" in r]
+        assert not any(r["accepted"] for r in gs.records if r["to_scan"] >= first_again)  # no position loop
+        turned = [math.degrees(math.remainder(gs.graph.node_pose(k)[2] - again[k - first_again][2], 2 * math.pi))
+                  for k in range(first_again, j)]
+        s = gs.summary()["loop_closure"]
+        if enabled:
+            assert heading and all(r["heading_constraint"]["in_final_graph"] for r in heading), gs.records
+            assert all(r["reason"].startswith("ambiguous") and not r["in_final_graph"] for r in heading)
+            assert s["heading_constraints"] == s["heading_constraints_in_final_graph"] == len(heading)
+            assert max(abs(t) for t in turned) < 1.0, turned  # turned back within a degree
+        else:
+            assert not heading and s["heading_constraints"] == 0
+            assert min(abs(t) for t in turned) > 5.0, turned  # still 6° off

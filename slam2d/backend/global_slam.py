@@ -71,6 +71,7 @@ class GlobalSlam:
         self._segment_start = 0
         self._segment_of: dict[int, int] = {}
         self.fresh_starts: list[int] = []  # the nodes local SLAM started afresh with
+        self.heading_constraints = 0  # heading constraints added (``_search``'s heading)
         self._last_step = None  # the newest node's (submaps, floored map-axes covariance), for the next step
         # per (node, submap) searched: the node's pose in the submap's grid frame the search started
         # from, its window (m, rad) and whether it was accepted (``final_search``)
@@ -335,11 +336,12 @@ class GlobalSlam:
             c = self._centres[k] = between(m.submap.local_pose, np.r_[m.center_local, 0.0])
         return c
 
-    def _search(self, k, j, initial=None, defer: bool = False, window=None):
+    def _search(self, k, j, initial=None, defer: bool = False, window=None, heading: bool = False):
         """Match node ``j`` against submap ``k`` around ``initial`` (its pose in the submap's grid frame;
         default: from the current global estimates) within ``window`` (m, rad; default: ``_window``).
         The record is kept and an accepted match becomes a loop constraint, unless ``defer``: then
-        both are returned for ``_commit``."""
+        both are returned for ``_commit``. ``heading``: a match rejected as ambiguous in position
+        only becomes a heading constraint (``loop_closure.wide_heading_constraints``)."""
         m = self.matchers[k]
         node = self.nodes[j]
         if initial is None:
@@ -380,6 +382,11 @@ class GlobalSlam:
                         "in_final_graph": res.reason is None})
             if res.reason is None:
                 loop = (frm, j, relative, cov)
+            elif (heading and lc.wide_heading_constraints and res.reason.startswith("ambiguous")
+                  and res.heading_margin >= lc.min_margin):
+                # poses along a corridor score alike, but only at the refined heading: that holds
+                rec["heading_constraint"] = {"in_final_graph": True, "sigma_deg": round(math.degrees(math.sqrt(cov[2, 2])), 4)}
+                rec["_heading"] = (frm, j, relative, np.diag([HEADING_ONLY_SIGMA ** 2, HEADING_ONLY_SIGMA ** 2, cov[2, 2]]))
         self._searched[(j, k)] = (*map(float, initial), lin, ang, loop is not None)
         at = self._sampled_at.get(j)
         if at is not None:
@@ -397,10 +404,16 @@ class GlobalSlam:
     def _commit(self, rec, loop):
         if loop is not None:
             self.graph.add_loop(*loop, rec)
+        h = rec.pop("_heading", None)
+        if h is not None:  # its record is the one constraints.jsonl shows under heading_constraint
+            self.graph.add_loop(*h, rec["heading_constraint"], heading_only=True)
+            self.heading_constraints += 1
         self.records.append(rec)
         self.observer.on_loop_candidate(rec)
 
     def _reject(self, rec, reason):
+        rec.pop("_heading", None)
+        rec.pop("heading_constraint", None)
         rec.update({"accepted": False, "reason": reason, "in_final_graph": False})
         self._commit(rec, None)
 
@@ -486,7 +499,8 @@ class GlobalSlam:
         found_by = []
         for j in pair:
             rec, loop, res = self._search(k, j, initial=compose(x, self.nodes[j]["local"]), defer=True,
-                                          window=(lc.linear_search_window, math.radians(lc.angular_search_window_deg)))
+                                          window=(lc.linear_search_window, math.radians(lc.angular_search_window_deg)),
+                                          heading=True)
             rec["search"] = f"wide ±{lin:.1f} m ±{math.degrees(ang):.0f}°, coarse score {found[1]:.3f}"
             found_by.append((rec, loop, res, j))
         if any(loop is None for _, loop, _, _ in found_by):
@@ -590,7 +604,8 @@ class GlobalSlam:
         self.optimize_seconds += time.perf_counter() - t0
         self.optimizations += 1
         self.loops_at_last_optimize = len(self.graph.loops)
-        self.drift.update([(f.anchor, f.node) for f in self.graph.loops])  # the loops the estimates now reflect
+        # the loops the estimates now reflect (a heading constraint ties no position)
+        self.drift.update([(f.anchor, f.node) for f in self.graph.loops if not f.heading_only])
         self.since_optimize = 0
         last = self.node_order[-1]
         self.correction = compose(self.graph.node_pose(last), inverse(self.nodes[last]["local"]))
@@ -622,7 +637,7 @@ class GlobalSlam:
 
     def _check_consistency(self):
         """Remove loops that contradict other loops through the local chain (``consistency.py``)."""
-        loops = list(self.graph.loops)
+        loops = [f for f in self.graph.loops if not f.heading_only]  # a heading constraint claims no position
         if len(loops) < 2 and self.lc.consistency_min_support == 0:
             return
         p = self._pairs.p
@@ -682,15 +697,21 @@ class GlobalSlam:
             "submaps_scored_on_field": self.field_submaps,
             "solver_process_peak_rss_mb": getattr(self.graph, "peak_rss_mb", None),
             "fresh_starts": list(self.fresh_starts), "fresh_starts_untied": self.untied_fresh_starts(),
+            "heading_constraints": self.heading_constraints,
+            "heading_constraints_in_final_graph": sum(1 for f in self.graph.loops if f.heading_only),
         }}
 
     def untied_fresh_starts(self) -> list[int]:
         """The nodes where local SLAM started afresh (``add_node``) that no loop in the graph spans: what
         was mapped after such a node hangs on what was mapped before only by the loose step between
         them, so the two may be misaligned by as much as local SLAM's doubt."""
-        ends = np.array([(min(f.anchor, f.node), max(f.anchor, f.node)) for f in self.graph.loops],
+        ends = np.array([(min(f.anchor, f.node), max(f.anchor, f.node)) for f in self.graph.loops if not f.heading_only],
                         dtype=np.int64).reshape(-1, 2)
         return [int(h) for h in self.fresh_starts if not np.any((ends[:, 0] < h) & (ends[:, 1] >= h))]
+
+
+#: the translation sigma of a heading constraint [m]: no information (its rotation sigma is the match's)
+HEADING_ONLY_SIGMA = 1e3
 
 
 def min_score_for(lc, self_score: float) -> float:

@@ -65,6 +65,7 @@ class LoopMatch:
     seconds: float
     rescore: float = float("nan")       # mean probability at the refined pose
     margin: float = float("nan")        # peak minus the best separated local maximum nearby
+    heading_margin: float = float("nan")  # the refined heading's best score minus the best at other headings
     covariance: np.ndarray | None = None  # (x, y, θ) in the submap grid's axes
     reason: str | None = None           # why verification rejected it (None: accepted)
 
@@ -241,6 +242,7 @@ class SubmapMatcher:
         m.rescore = float(scores[n_ang, w, w])
         ex_lin, ex_ang = int(np.ceil(exclusion[0] / res)), int(np.ceil(exclusion[1] / step))
         m.margin = separated_margin(scores, ex_lin, ex_ang)
+        m.heading_margin = heading_margin(scores, ex_ang)
         # the margin is the window's best pose's; the constraint is the refined pose (the window's
         # centre), so that must be the peak, or the margin speaks of another pose
         a, iy, ix = np.unravel_index(int(np.argmax(scores)), scores.shape)
@@ -315,10 +317,21 @@ def separated_margin(scores: np.ndarray, lin: int, ang: int) -> float:
     return best if other == -math.inf else best - other
 
 
+def heading_margin(scores: np.ndarray, ang: int) -> float:
+    """How clearly a verification window (angles × y × x, centred on the refined pose) fixes the
+    heading alone: the best score at headings within ``ang`` angular steps of the centre, anywhere in
+    the window, minus the best at every other heading. A corridor scores alike along itself, so its
+    margin is small, but only poses at the refined heading do: this stays large. NaN when the window
+    holds no other heading."""
+    best = scores.reshape(scores.shape[0], -1).max(axis=1)
+    near = np.abs(np.arange(len(best)) - len(best) // 2) <= ang
+    return float(best[near].max() - best[~near].max()) if (~near).any() else float("nan")
+
+
 def loop_points(hits: np.ndarray, voxel: float, min_points: int = 0, max_length: float = 0.0) -> np.ndarray:
     """A node's points for loop-closure matching: voxel-filtered at ``voxel``, then thinned by the
     adaptive voxel filter to about ``min_points`` (0: not)."""
     return adaptive_voxel_filter(voxel_filter(np.asarray(hits, dtype=float), voxel), min_points, max_length)
 
 
-__all__ = ["SubmapMatcher", "LoopMatch", "loop_points", "separated_margin"]
+__all__ = ["SubmapMatcher", "LoopMatch", "heading_margin", "loop_points", "separated_margin"]

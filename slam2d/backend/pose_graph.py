@@ -139,13 +139,14 @@ class PoseGraph:
         noise = gtsam.noiseModel.Gaussian.Covariance(np.asarray(covariance, dtype=float))
         self._add(gtsam.BetweenFactorPose2(_key("n", anchor), _key("n", j), _pose(relative), noise))
 
-    def add_loop(self, anchor: int, j: int, relative, covariance, record: dict) -> LoopFactor:
-        """``covariance``: 3×3 in the node's frame, or 3 sigmas."""
+    def add_loop(self, anchor: int, j: int, relative, covariance, record: dict, heading_only: bool = False) -> LoopFactor:
+        """``covariance``: 3×3 in the node's frame, or 3 sigmas. ``heading_only``: a heading constraint
+        (its translation σ uninformative): the residual check judges its rotation alone."""
         c = np.asarray(covariance, dtype=float)
         base = gtsam.noiseModel.Diagonal.Sigmas(c) if c.ndim == 1 else gtsam.noiseModel.Gaussian.Covariance(c)
         noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(self.huber_scale), base)
         i = self._add(gtsam.BetweenFactorPose2(_key("n", anchor), _key("n", j), _pose(relative), noise))
-        f = LoopFactor(i, anchor, j, np.asarray(relative, dtype=float), record, base)
+        f = LoopFactor(i, anchor, j, np.asarray(relative, dtype=float), record, base, heading_only)
         self.loops.append(f)
         return f
 
@@ -321,11 +322,13 @@ class PoseGraph:
         a = poses[np.searchsorted(ids, [f.anchor for f in self.loops])]
         n = poses[np.searchsorted(ids, [f.node for f in self.loops])]
         r = between(between(a, n), np.array([f.relative for f in self.loops]).reshape(-1, 3))
+        r[[f.heading_only for f in self.loops], :2] = 0.0  # a heading constraint claims no translation
         screen = np.maximum(np.hypot(r[:, 0], r[:, 1]) / self.max_residual_trans, np.abs(r[:, 2]) / self.max_residual_rot)
         out = []
         for k in np.flatnonzero(screen > RESIDUAL_SCREEN):
             f = self.loops[int(k)]
-            excess = self._excess(self.residual(f))
+            res = self.residual(f)
+            excess = self._excess(np.array([0.0, 0.0, res[2]]) if f.heading_only else res)
             if excess > 1.0:
                 out.append((excess, f))
         return out

@@ -81,10 +81,10 @@ class RemotePoseGraph:
     def add_intra(self, anchor: int, j: int, relative, covariance):
         self._ops.append(("intra", int(anchor), int(j), np.asarray(relative, float), np.asarray(covariance, float)))
 
-    def add_loop(self, anchor: int, j: int, relative, covariance, record: dict) -> LoopFactor:
-        f = LoopFactor(self._next_id, anchor, j, np.asarray(relative, dtype=float), record)
+    def add_loop(self, anchor: int, j: int, relative, covariance, record: dict, heading_only: bool = False) -> LoopFactor:
+        f = LoopFactor(self._next_id, anchor, j, np.asarray(relative, dtype=float), record, heading_only=heading_only)
         self._next_id += 1
-        self._ops.append(("loop", f.index, int(anchor), int(j), f.relative, np.asarray(covariance, float)))
+        self._ops.append(("loop", f.index, int(anchor), int(j), f.relative, np.asarray(covariance, float), heading_only))
         self.loops.append(f)
         self._by_id[f.index] = f
         return f
@@ -225,7 +225,7 @@ def _apply(pose_graph, graph, loops: dict, msg):
         elif op[0] == "intra":
             graph.add_intra(*op[1:])
         elif op[0] == "loop":
-            loops[op[1]] = graph.add_loop(*op[2:], {"id": op[1]})
+            loops[op[1]] = graph.add_loop(*op[2:6], {"id": op[1]}, heading_only=op[6])
         else:  # remove
             graph.remove_loop(loops.pop(op[1]), op[2])
     return graph
