@@ -100,20 +100,22 @@ def _submap(index, segs, true_poses, local_poses):
     return SimpleNamespace(grid=g, local_pose=np.asarray(local_poses[0], float), index=index, node_indices=[])
 
 
-def _global_slam_with_a_return(detour: float, cfg=None):
+def _global_slam_with_a_return(detour: float, cfg=None, segs=None, first=None, again=None, mid=None, drift=None):
     """Submap 0 maps a corridor; after ``detour`` metres of driving elsewhere the robot maps it again
-    (submap 3), but local SLAM's frame has drifted by 5 m and 40° about the corridor's middle."""
+    (submap 3), but local SLAM's frame has drifted about the corridor's middle ``mid`` by ``drift``
+    (its pose there; default: the office's corridor, 5 m and 40°). ``first`` / ``again``: the true
+    poses of the two passes."""
     from types import SimpleNamespace
 
     from slam2d.backend.global_slam import GlobalSlam
     from slam2d.config import SlamConfig
 
-    segs = floor_plan()
+    segs = floor_plan() if segs is None else segs
     gs = GlobalSlam(cfg or SlamConfig())
-    first = [np.array([x, 6.0, 0.0]) for x in np.linspace(4.0, 26.0, 23)]
-    again = [np.array([x, 6.0, math.pi]) for x in np.linspace(24.0, 8.0, 17)]
-    mid = np.array([15.0, 6.0, 0.0])
-    drift = compose(compose(mid, np.array([3.0, -4.0, math.radians(40.0)])), inverse(mid))
+    first = [np.array([x, 6.0, 0.0]) for x in np.linspace(4.0, 26.0, 23)] if first is None else first
+    again = [np.array([x, 6.0, math.pi]) for x in np.linspace(24.0, 8.0, 17)] if again is None else again
+    mid = np.array([15.0, 6.0, 0.0]) if mid is None else mid
+    drift = compose(compose(mid, np.array([3.0, -4.0, math.radians(40.0)]) if drift is None else drift), inverse(mid))
 
     def node(j, true, local, submap):
         scan = SimpleNamespace(index=j, timestamp=float(j), timestamp_text=None)
@@ -126,8 +128,8 @@ def _global_slam_with_a_return(detour: float, cfg=None):
     gs.add_finished_submap(s0)
     j = len(first)
     if detour:  # somewhere far away and back: the path between the two passes grows by 2 × detour
-        far = SimpleNamespace(index=1, local_pose=np.array([15.0, 6.0 + detour, 0.0]), node_indices=[])
-        for p in (np.array([15.0, 6.0 + detour, 0.0]), ):
+        far = SimpleNamespace(index=1, local_pose=mid + [0.0, detour, 0.0], node_indices=[])
+        for p in (far.local_pose, ):
             gs.add_node(SimpleNamespace(index=j, timestamp=float(j), timestamp_text=None), p,
                         np.zeros((0, 2)), None, [(far.index, far.local_pose)])
             j += 1
@@ -197,47 +199,22 @@ def test_a_return_along_a_featureless_corridor_adds_heading_constraints_that_tur
     elsewhere, and maps it again on the way back, local SLAM's frame turned by 6° and slid along. The
     wide search finds the corridor, but every node match slides along it (ambiguous, no loop); their
     heading holds, and the heading constraints turn the return back, without a position loop."""
-    from types import SimpleNamespace
-
-    from slam2d.backend.global_slam import GlobalSlam
     from slam2d.config import SlamConfig
 
     segs = np.array([[-60.0, 1.0, 60.0, 1.0], [-60.0, -1.0, 60.0, -1.0]])
+    first = [np.array([x, 0.0, 0.0]) for x in np.linspace(-10.0, 10.0, 21)]
+    again = [np.array([x, 0.0, math.pi]) for x in np.linspace(9.0, -9.0, 19)]
+    first_again = len(first) + 1  # after the node far away
     for enabled in (True, False):
         cfg = SlamConfig()
         cfg.loop_closure.wide_heading_constraints = enabled
-        gs = GlobalSlam(cfg)
-        first = [np.array([x, 0.0, 0.0]) for x in np.linspace(-10.0, 10.0, 21)]
-        again = [np.array([x, 0.0, math.pi]) for x in np.linspace(9.0, -9.0, 19)]
-        mid = np.zeros(3)
-        drift = compose(compose(mid, np.array([2.5, 0.0, math.radians(6.0)])), inverse(mid))
-
-        def node(j, true, local, submap):
-            scan = SimpleNamespace(index=j, timestamp=float(j), timestamp_text=None)
-            gs.add_node(scan, local, _scan_points(segs, true, 8.0), None, [(submap.index, submap.local_pose)])
-            submap.node_indices.append(j)
-
-        s0 = _submap(0, segs, first, first)
-        for j, p in enumerate(first):
-            node(j, p, p, s0)
-        gs.add_finished_submap(s0)
-        j = len(first)
-        far = SimpleNamespace(index=1, local_pose=np.array([0.0, 60.0, 0.0]), node_indices=[])
-        gs.add_node(SimpleNamespace(index=j, timestamp=float(j), timestamp_text=None), far.local_pose,
-                    np.zeros((0, 2)), None, [(far.index, far.local_pose)])
-        j += 1
-        local = [compose(drift, p) for p in again]
-        s3 = _submap(3, segs, again, local)
-        first_again = j
-        for t, p in zip(again, local):
-            node(j, t, p, s3)
-            j += 1
-        gs.add_finished_submap(s3)
+        gs, _, _ = _global_slam_with_a_return(60.0, cfg, segs, first, again, np.zeros(3),
+                                              np.array([2.5, 0.0, math.radians(6.0)]))
         gs.optimize()
         heading = [r for r in gs.records if "heading_constraint" in r]
         assert not any(r["accepted"] for r in gs.records if r["to_scan"] >= first_again)  # no position loop
-        turned = [math.degrees(math.remainder(gs.graph.node_pose(k)[2] - again[k - first_again][2], 2 * math.pi))
-                  for k in range(first_again, j)]
+        turned = [math.degrees(math.remainder(gs.graph.node_pose(first_again + i)[2] - t[2], 2 * math.pi))
+                  for i, t in enumerate(again)]
         s = gs.summary()["loop_closure"]
         if enabled:
             assert heading and all(r["heading_constraint"]["in_final_graph"] for r in heading), gs.records

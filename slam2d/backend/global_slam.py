@@ -605,7 +605,7 @@ class GlobalSlam:
         self.optimizations += 1
         self.loops_at_last_optimize = len(self.graph.loops)
         # the loops the estimates now reflect (a heading constraint ties no position)
-        self.drift.update([(f.anchor, f.node) for f in self.graph.loops if not f.heading_only])
+        self.drift.update([(f.anchor, f.node) for f in self._position_loops()])
         self.since_optimize = 0
         last = self.node_order[-1]
         self.correction = compose(self.graph.node_pose(last), inverse(self.nodes[last]["local"]))
@@ -637,7 +637,7 @@ class GlobalSlam:
 
     def _check_consistency(self):
         """Remove loops that contradict other loops through the local chain (``consistency.py``)."""
-        loops = [f for f in self.graph.loops if not f.heading_only]  # a heading constraint claims no position
+        loops = self._position_loops()
         if len(loops) < 2 and self.lc.consistency_min_support == 0:
             return
         p = self._pairs.p
@@ -701,11 +701,16 @@ class GlobalSlam:
             "heading_constraints_in_final_graph": sum(1 for f in self.graph.loops if f.heading_only),
         }}
 
+    def _position_loops(self) -> list:
+        """The loops in the graph that tie positions: all but the heading constraints, which the
+        consistency check, the drift bound and the fresh-start ties leave out."""
+        return [f for f in self.graph.loops if not f.heading_only]
+
     def untied_fresh_starts(self) -> list[int]:
         """The nodes where local SLAM started afresh (``add_node``) that no loop in the graph spans: what
         was mapped after such a node hangs on what was mapped before only by the loose step between
         them, so the two may be misaligned by as much as local SLAM's doubt."""
-        ends = np.array([(min(f.anchor, f.node), max(f.anchor, f.node)) for f in self.graph.loops if not f.heading_only],
+        ends = np.array([(min(f.anchor, f.node), max(f.anchor, f.node)) for f in self._position_loops()],
                         dtype=np.int64).reshape(-1, 2)
         return [int(h) for h in self.fresh_starts if not np.any((ends[:, 0] < h) & (ends[:, 1] >= h))]
 

@@ -162,9 +162,12 @@ class PoseGraph:
         self.removed.append(f)
 
     def residual(self, f: LoopFactor) -> np.ndarray:
+        """(x, y, θ) of the loop's measurement against the solution; a heading constraint's is its
+        rotation alone (it claims no translation)."""
         a = self.values.atPose2(_key("n", f.anchor))
         n = self.values.atPose2(_key("n", f.node))
-        return _arr(a.between(n).between(_pose(f.relative)))
+        r = _arr(a.between(n).between(_pose(f.relative)))
+        return np.array([0.0, 0.0, r[2]]) if f.heading_only else r
 
     # ---- solve
     def _solve(self, batch: bool = False):
@@ -322,13 +325,12 @@ class PoseGraph:
         a = poses[np.searchsorted(ids, [f.anchor for f in self.loops])]
         n = poses[np.searchsorted(ids, [f.node for f in self.loops])]
         r = between(between(a, n), np.array([f.relative for f in self.loops]).reshape(-1, 3))
-        r[[f.heading_only for f in self.loops], :2] = 0.0  # a heading constraint claims no translation
+        r[[f.heading_only for f in self.loops], :2] = 0.0  # as ``residual``: a heading constraint's is its rotation
         screen = np.maximum(np.hypot(r[:, 0], r[:, 1]) / self.max_residual_trans, np.abs(r[:, 2]) / self.max_residual_rot)
         out = []
         for k in np.flatnonzero(screen > RESIDUAL_SCREEN):
             f = self.loops[int(k)]
-            res = self.residual(f)
-            excess = self._excess(np.array([0.0, 0.0, res[2]]) if f.heading_only else res)
+            excess = self._excess(self.residual(f))
             if excess > 1.0:
                 out.append((excess, f))
         return out
