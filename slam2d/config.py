@@ -118,6 +118,7 @@ class LoopClosureConfig(_Section):
     margin_window_deg: float = Field(2.0, gt=0.0, description="Half-width of that window's rotation [deg].")
     margin_exclusion: float = Field(0.2, gt=0.0, description="Local maxima closer than this to the peak [m] (and closer than margin_exclusion_deg) are the peak itself.")
     margin_exclusion_deg: float = Field(1.0, gt=0.0, description="... [deg].")
+    estimate_check: bool = Field(True, description="A match that moves a node at least margin_exclusion from where the pose graph places it must also score higher than that estimate on the scan points both poses put on cells the submap observed. A scan that sees past the mapped part of a submap scores higher slid back onto mapped ground (its far end then lands on walls already mapped, at the true pose on unobserved cells), so the plain score can prefer a wrong pose with a clear margin. Not applied to the wide search's node matches, which start from a coarse match rather than the estimate.")
     loop_sigma_translation: float = Field(0.02, gt=0.0, description="Floor on the standard deviation of a loop constraint's translation (its covariance comes from the match's score surface) [m].")
     loop_sigma_rotation_deg: float = Field(0.3, gt=0.0, description="Floor on the standard deviation of a loop constraint's rotation [deg].")
     consistency_check: bool = Field(True, description="Before each optimization, remove loops that contradict other loops through the local chain (pairwise cycle consistency; independent of the solution).")

@@ -29,6 +29,7 @@ from slam2d.config import SlamConfig
 from slam2d.geometry import between, compose
 from slam2d.grid.submap import ActiveSubmaps
 from slam2d.types import MatchingResult
+from slam2d.matching.observed import observed_scores
 from slam2d.matching.real_time import RealTimeCorrelativeScanMatcher
 from slam2d.matching.refine import refine
 from slam2d.matching.search import SearchParameters, angular_step
@@ -143,25 +144,6 @@ def degenerate_direction(points: np.ndarray) -> np.ndarray | None:
     v = (b, low - a) if abs(a - low) >= abs(c - low) else (low - c, b)
     norm = math.hypot(*v)
     return np.array([v[0] / norm, v[1] / norm]) if norm > 0.0 else None
-
-
-def observed_scores(submap_grid, match_grid, poses, points: np.ndarray) -> list[float] | None:
-    """The mean ``match_grid`` value of the points that every pose of ``poses`` puts on an observed
-    cell of ``submap_grid``, one figure per pose; None when no point does.
-
-    A point that falls on never-observed space scores nothing, so of two candidate poses the one
-    that moves more points onto the mapped part of the submap scores higher, right or not: in a
-    corridor a scan slid back along it lays its far end onto walls already mapped, while at the
-    true pose that end sees new ground. Judged only on the points both poses can be checked by,
-    that bias is gone and the comparison is between the poses' geometry.
-    """
-    cells = [match_grid.cells(points, p, np.zeros(1))[0] for p in poses]
-    common = np.ones(len(points), dtype=bool)
-    for c in cells:
-        common &= submap_grid.observed_at(c)
-    if not common.any():
-        return None
-    return [float(match_grid.values[c[common, 1], c[common, 0]].mean()) for c in cells]
 
 
 class LocalSlam:

@@ -342,7 +342,7 @@ def _observed_world():
 
 
 def test_observed_scores_judge_two_poses_on_the_points_both_put_on_observed_cells():
-    from slam2d.frontend import observed_scores
+    from slam2d.matching.observed import observed_scores
 
     g, mg, pts = _observed_world()
     a, b = np.zeros(3), np.array([-3.0, 0.0, 0.0])

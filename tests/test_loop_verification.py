@@ -13,6 +13,7 @@ from slam2d.geometry import between, compose, inverse
 from slam2d.grid.probability_grid import ProbabilityGrid
 from slam2d.io.mcap import McapLog
 from slam2d.io.simulator import floor_plan, raycast
+from slam2d.matching.observed import observed_scores
 from slam2d.slam import Slam
 
 from conftest import BUNDLED
@@ -27,11 +28,11 @@ def scan_points(segs, pose, max_range=10.0):
     return np.stack([r[ok] * np.cos(ANGLES[ok]), r[ok] * np.sin(ANGLES[ok])], axis=1)
 
 
-def submap(segs, poses, beam_step=1):
+def submap(segs, poses, beam_step=1, max_range=10.0):
     """A submap of scans from ``poses`` (every ``beam_step``-th beam), frozen as a finished one is."""
     g = ProbabilityGrid(0.05)
     for p in poses:
-        pts = scan_points(segs, p)[::beam_step]
+        pts = scan_points(segs, p, max_range)[::beam_step]
         g.insert(p[:2], compose(p, np.c_[pts, np.zeros(len(pts))])[:, :2])
     b = g.known_bounds()
     g.freeze(*b)
@@ -572,6 +573,51 @@ def test_a_corridor_match_fixes_the_heading_where_it_cannot_fix_the_position(fie
     centre = np.array([0.0, 0.0, 0.4])
     res = m.match(scan_points(ring, centre, 8.0), centre + [0.02, 0.0, 0.03], 0.3, math.radians(5), 0.3, REFINE, 0.02)
     assert res is not None and res.heading_margin < 0.02, res.heading_margin
+
+
+def _corridor_with_stubs():
+    """A corridor along x (walls at y = ±1) with a pair of 0.3 m stubs on both walls at x = 1.0 and 1.6."""
+    walls = [[-30.0, 1.0, 30.0, 1.0], [-30.0, -1.0, 30.0, -1.0]]
+    stubs = [[x, s, x, s * 0.7] for x in (1.0, 1.6) for s in (1.0, -1.0)]
+    return np.array(walls + stubs)
+
+
+def test_a_match_slid_back_onto_mapped_ground_is_held_against_the_estimate():
+    """A scan that sees past the mapped end of a submap: the submap's scans (range 4 m, from x ≤ -2.7)
+    mapped the corridor up to x ≈ 1.3, the first stub but not the second; the scan at x = 0 sees 8 m.
+    Slid back 0.6 m, its second stub lands on the mapped first one and 0.6 m more of its walls on
+    mapped walls: that pose scores higher than the true one, by a clear margin, and the plain
+    verification accepts it. Held against the estimate (the true pose) on the points both put on
+    observed cells, it loses, and verification rejects it."""
+    segs = _corridor_with_stubs()
+    m = SubmapMatcher(submap(segs, [np.array([x, 0.0, 0.0]) for x in np.linspace(-4, -2.7, 7)], max_range=4.0), 4,
+                      field_sigma=0.1)
+    truth = np.zeros(3)
+    pts = scan_points(segs, truth, 8.0)
+    args = (pts, truth, 0.7, math.radians(3), 0.3, REFINE, 0.02, (0.6, math.radians(2)), (0.2, math.radians(1)))
+    plain = m.match(*args)
+    assert plain.reason is None and plain.margin >= 0.02  # the slide passes re-score, peak and margin ...
+    assert abs(plain.pose[0] + 0.6) < 0.05, plain.pose  # ... 0.6 m back
+    held = m.match(*args, estimate=True)
+    assert held.reason is not None and held.reason.startswith("the estimate 0.6"), held.reason
+    # the check compares only where both poses read mapped ground: there the estimate scores higher
+    both = observed_scores(m.submap.grid, m.prob, [held.pose, truth], pts)
+    assert both is not None and both[1] > both[0]
+
+
+@pytest.mark.parametrize("offset", [(0.5, 0.0, 0.0), (0.4, 0.1, 0.02), (-0.3, 0.05, 0.0), (-0.5, 0.0, -0.02)])
+def test_a_true_loop_is_not_held_back_by_an_estimate_that_is_off(offset):
+    """The same corridor mapped all around the scan (range 8 m, from -1 ≤ x ≤ 1): where the estimate
+    is 0.3–0.5 m off, the match moves the node back to the true pose, and on the points both poses
+    put on observed cells the true pose scores higher, so the loop is accepted."""
+    segs = _corridor_with_stubs()
+    m = SubmapMatcher(submap(segs, [np.array([x, 0.0, 0.0]) for x in np.linspace(-1, 1, 7)], max_range=8.0), 4,
+                      field_sigma=0.1)
+    truth = np.zeros(3)
+    res = m.match(scan_points(segs, truth, 8.0), truth + offset, 0.7, math.radians(3), 0.3, REFINE, 0.02,
+                  (0.6, math.radians(2)), (0.2, math.radians(1)), estimate=True)
+    assert res.reason is None, res.reason
+    assert np.hypot(*res.pose[:2]) < 0.05
 
 
 @pytest.mark.parametrize("remote", [False, True], ids=["in_process", "solver_process"])

@@ -157,6 +157,38 @@ def test_a_return_beyond_the_regular_window_is_closed_by_the_wide_search():
     assert not any(r["accepted"] for r in gs.records if "wide" not in r.get("search", ""))
 
 
+@pytest.mark.parametrize("check", [True, False])
+def test_only_matches_searched_from_the_estimate_are_held_against_it(monkeypatch, check):
+    """The regular search starts from where the pose graph places the node, and verification holds
+    its match against that estimate (``loop_closure.estimate_check``); the wide search's node
+    matches start from a coarse submap match, which is no estimate, and are not held against it."""
+    import slam2d.backend.global_slam as gsmod
+    from slam2d.backend.loop_closure import SubmapMatcher
+    from slam2d.config import SlamConfig
+
+    seen = {"wide": set(), "regular": set()}
+    inside = []
+    match, wide = SubmapMatcher.match, gsmod.GlobalSlam._search_wide
+
+    def spy_match(self, *a, estimate=False, **k):
+        seen["wide" if inside else "regular"].add(estimate)
+        return match(self, *a, estimate=estimate, **k)
+
+    def spy_wide(self, submap):
+        inside.append(1)
+        try:
+            return wide(self, submap)
+        finally:
+            inside.pop()
+
+    monkeypatch.setattr(SubmapMatcher, "match", spy_match)
+    monkeypatch.setattr(gsmod.GlobalSlam, "_search_wide", spy_wide)
+    gs, _, _ = _global_slam_with_a_return(detour=1000.0, cfg=SlamConfig(loop_closure={"estimate_check": check}))
+    assert gs.wide_searches >= 1
+    assert seen["wide"] == {False}
+    assert seen["regular"] == {check}
+
+
 def test_no_wide_search_where_the_regular_window_covers_the_drift():
     gs, _, _ = _global_slam_with_a_return(detour=0.0)
     assert gs.wide_searches == 0

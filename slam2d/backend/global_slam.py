@@ -344,6 +344,7 @@ class GlobalSlam:
         only becomes a heading constraint (``loop_closure.wide_heading_constraints``)."""
         m = self.matchers[k]
         node = self.nodes[j]
+        estimate = initial is None and self.lc.estimate_check
         if initial is None:
             initial = self._initial(k, self.global_node(j))
         lc = self.lc
@@ -355,7 +356,7 @@ class GlobalSlam:
         res = m.match(node["points"], initial, lin, ang, min_score,
                       (lc.refine_occupied_weight, lc.refine_translation_weight, lc.refine_rotation_weight, 20),
                       lc.min_margin, (lc.margin_window, math.radians(lc.margin_window_deg)),
-                      (lc.margin_exclusion, math.radians(lc.margin_exclusion_deg)))
+                      (lc.margin_exclusion, math.radians(lc.margin_exclusion_deg)), estimate=estimate)
         dt = time.perf_counter() - t0
         self.search_seconds += dt
         self.searches += 1

@@ -28,6 +28,12 @@ poses (``self_score``):
   its window can refine onto the slope of a better pose just outside it. Chosen over a
   second branch-and-bound run with the peak excluded because the B&B kernel has no exclusion
   and a small exhaustive window costs a few ms, only for matches that passed the score;
+- estimate: a match that moves the node at least ``margin_exclusion`` from where the pose graph
+  places it must beat that estimate on the points both poses put on observed cells
+  (``matching/observed.py``). A scan that sees past the mapped part of a submap scores higher
+  slid back onto mapped ground, and can do so with a clear margin, the estimate being the
+  separated peak its new ground scores low (the regular search only: the wide search starts its
+  node matches from a coarse match, not from the estimate);
 - information: Olson's covariance of that window's score distribution (unpenalized; covered
   by the curvature at the peak, flat directions get the whole window), in the submap grid
   frame — the caller floors it and turns it into the node's frame.
@@ -51,6 +57,7 @@ from slam2d.geometry import between
 from slam2d.grid import _kernels as _grid_kernels
 from slam2d.grid.probability_grid import field_kernel, quantize
 from slam2d.matching import _kernels
+from slam2d.matching.observed import observed_scores
 from slam2d.matching.real_time import _covariance, unmatched_covariance
 from slam2d.matching.refine import refine
 from slam2d.matching.search import MatchGrid, PrecomputationStack, SearchParameters, branch_and_bound, exhaustive
@@ -206,9 +213,11 @@ class SubmapMatcher:
         return MatchGrid(self.cache.probabilities(self), g.origin, g.resolution, g.unknown_probability, 1.0 / 255.0)
 
     def match(self, points, initial, linear_window, angular_window, min_score, refine_weights,
-              min_margin=0.0, margin_window=(0.6, 0.035), margin_exclusion=(0.2, 0.0175)) -> LoopMatch | None:
+              min_margin=0.0, margin_window=(0.6, 0.035), margin_exclusion=(0.2, 0.0175),
+              estimate: bool = False) -> LoopMatch | None:
         """None when branch-and-bound finds nothing above ``min_score``; else the refined match,
-        with ``reason`` set when verification rejects it."""
+        with ``reason`` set when verification rejects it. ``estimate``: ``initial`` is where the
+        pose graph places the node now, and verification holds the match against it."""
         t0 = time.perf_counter()
         params = SearchParameters.make(linear_window, angular_window, self.grid.resolution, points)
         cells = self.grid.cells(points, initial, params.angles)
@@ -221,12 +230,21 @@ class SubmapMatcher:
         prob = self.prob
         pose, _ = refine(self.refinement_grid(prob), pose, points, *refine_weights)
         out = LoopMatch(pose, between(self.submap.local_pose, pose), score / 255.0, 0.0)
-        self.verify(out, points, min_score, min_margin, margin_window, margin_exclusion, params.angular_step, prob)
+        self.verify(out, points, min_score, min_margin, margin_window, margin_exclusion, params.angular_step, prob,
+                    np.asarray(initial, dtype=float) if estimate else None)
         out.seconds = time.perf_counter() - t0
         return out
 
-    def verify(self, m: LoopMatch, points, min_score, min_margin, window, exclusion, step, prob=None) -> LoopMatch:
+    def verify(self, m: LoopMatch, points, min_score, min_margin, window, exclusion, step, prob=None,
+               estimate=None) -> LoopMatch:
         """Fill rescore, margin and covariance from an exhaustive window around the refined pose.
+
+        ``estimate``: the node's pose in the grid frame by the current pose graph. A match that
+        moves the node at least the exclusion radius from it must also score higher than it on the
+        points both poses put on observed cells of the submap (``matching/observed.py``): a scan
+        that sees past the submap's mapped part scores higher slid back onto mapped ground, and
+        there the separated peak the margin would compare with is the estimate itself, which its
+        new ground scores low.
 
         Rescore and margin judge the scored grid (``prob``: the field or the probabilities); the
         covariance of an accepted match comes from the probabilities' window, whose surface the
@@ -255,6 +273,11 @@ class SubmapMatcher:
                         f"scores {float(scores[a, iy, ix]):.3f} > {m.rescore:.3f}")
         elif m.margin < min_margin:
             m.reason = f"ambiguous: margin {m.margin:.3f} < {min_margin} to a separated peak"
+        elif estimate is not None and float(np.hypot(*(m.pose[:2] - estimate[:2]))) >= exclusion[0]:
+            common = observed_scores(self.submap.grid, prob, [m.pose, estimate], points)
+            if common is not None and common[1] >= common[0]:
+                m.reason = (f"the estimate {float(np.hypot(*(m.pose[:2] - estimate[:2]))):.2f} m away scores "
+                            f"{common[1]:.3f} >= {common[0]:.3f} on the points both put on observed cells")
         if m.reason is None and self._field is not None:
             estimated = self.refinement_grid(prob)
             scores = exhaustive(estimated, estimated.cells(points, m.pose, angles), w)
