@@ -108,6 +108,39 @@ def test_refinement_goes_below_cell_size():
     assert np.mean(errs_after) < 0.012
 
 
+def test_refinement_ends_at_a_minimum_of_its_cost():
+    """Wherever the refinement stops before its iteration limit, no small step from its pose (±0.5 mm,
+    ±0.01° along each axis) lowers the cost by more than the relative tolerance it stops at: it has
+    converged, not merely stopped (a Levenberg-Marquardt started heavily damped, 1e5, fails this)."""
+    from slam2d.matching import _kernels
+
+    rng = np.random.default_rng(6)
+    center = (6.0, 1.25, 0.0)
+    grid = world_grid("probability", center, rng)
+    h, g = np.zeros((3, 3)), np.zeros(3)
+
+    def cost(p, start, pts):
+        return _kernels._normal_equations(grid.values, float(grid.origin[0]), float(grid.origin[1]), float(grid.resolution),
+                                          float(grid.unknown), pts, p[0], p[1], p[2], start[0], start[1], start[2],
+                                          1.0 / np.sqrt(len(pts)), 3.0, 10.0, h, g, float(grid.scale), _kernels.ALL_KNOWN)
+
+    checked = 0
+    for _ in range(30):
+        truth = np.array(center) + [rng.uniform(-0.5, 0.5), rng.uniform(-0.2, 0.2), rng.uniform(-0.1, 0.1)]
+        start = truth + [rng.uniform(-0.03, 0.03), rng.uniform(-0.03, 0.03), rng.uniform(-0.01, 0.01)]
+        pts = np.ascontiguousarray(scan_points(truth), dtype=np.float64)
+        x, y, t, c, it = _kernels.refine_pose(grid.values, float(grid.origin[0]), float(grid.origin[1]), float(grid.resolution),
+                                              float(grid.unknown), pts, *start, 1.0, 3.0, 10.0, 20, float(grid.scale),
+                                              _kernels.ALL_KNOWN)
+        if it >= 20:
+            continue
+        checked += 1
+        assert cost((x, y, t), start, pts) == pytest.approx(c)
+        for d in np.vstack([np.eye(3), -np.eye(3)]) * [5e-4, 5e-4, np.radians(0.01)]:
+            assert cost((x + d[0], y + d[1], t + d[2]), start, pts) > c * (1 - 10 * _kernels.FUNCTION_TOLERANCE)
+    assert checked >= 20
+
+
 @pytest.fixture(scope="module")
 def sim_first_finished_submap():
     """Local SLAM on the bundled simulator log up to its first finished submap (cropped to its
