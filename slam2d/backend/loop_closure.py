@@ -273,11 +273,11 @@ class SubmapMatcher:
                         f"scores {float(scores[a, iy, ix]):.3f} > {m.rescore:.3f}")
         elif m.margin < min_margin:
             m.reason = f"ambiguous: margin {m.margin:.3f} < {min_margin} to a separated peak"
-        elif estimate is not None and float(np.hypot(*(m.pose[:2] - estimate[:2]))) >= exclusion[0]:
+        elif estimate is not None and (moved := float(np.hypot(*(m.pose[:2] - estimate[:2])))) >= exclusion[0]:
             common = observed_scores(self.submap.grid, prob, [m.pose, estimate], points)
             if common is not None and common[1] >= common[0]:
-                m.reason = (f"the estimate {float(np.hypot(*(m.pose[:2] - estimate[:2]))):.2f} m away scores "
-                            f"{common[1]:.3f} >= {common[0]:.3f} on the points both put on observed cells")
+                m.reason = (f"the estimate {moved:.2f} m away scores {common[1]:.3f} >= {common[0]:.3f} "
+                            f"on the points both put on observed cells")
         if m.reason is None and self._field is not None:
             estimated = self.refinement_grid(prob)
             scores = exhaustive(estimated, estimated.cells(points, m.pose, angles), w)
