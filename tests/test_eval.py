@@ -3,6 +3,7 @@ import math
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -422,6 +423,38 @@ def test_consistency_prefers_the_true_trajectory_on_the_simulator():
     assert part["truth"]["scans_checked"] == part["holes"]["scans_checked"] < t["scans_checked"]
 
 
+def test_consistency_disputes_point_at_the_scans_one_trajectory_misplaces():
+    """The simulator's true poses against the same poses with scans 300-319 moved 0.5 m sideways (a
+    reference that jumps for a stretch): the scans of that stretch agree with their neighbours only
+    at the true poses, the disputed scans side with the truth, and the longest disputed stretch lies
+    inside the moved one; the truth against itself has no dispute."""
+    from conftest import BUNDLED
+
+    from slam2d.config import load_config
+    from slam2d.eval.consistency import compare, disputes
+    from slam2d.io.source import open_source
+
+    truth = np.array([s.ground_truth for s in open_source(BUNDLED)], dtype=float)
+    cfg = load_config(None)
+    moved = truth.copy()
+    moved[300:320] = [compose(p, np.array([0.0, 0.5, 0.0])) for p in truth[300:320]]
+    d = compare(open_source(BUNDLED), cfg, {"truth": truth, "moved": moved})["moved"]["disputes"]
+    assert d["with"] == "truth"
+    assert d["agree_only_there"] >= 5 and d["agree_only_here"] <= 1, d
+    longest = d["stretches"][0]
+    assert longest["agree_with"] == "there" and 300 <= longest["scans"][0] <= longest["scans"][1] < 320, d
+    assert compare(open_source(BUNDLED), cfg, {"a": truth, "b": truth.copy()})["b"]["disputes"]["stretches"] == []
+    # the verdict per node, by hand: disputed where exactly one side agrees; NaN (unchecked) is no dispute
+    nodes = [SimpleNamespace(scan_index=i) for i in range(6)]
+    here = np.array([0.0, 0.5, 0.5, 0.0, np.nan, 0.5])
+    there = np.array([0.0, 0.0, 0.0, 0.5, 0.5, 0.0])
+    d = disputes(nodes, here, there)
+    assert (d["agree_only_here"], d["agree_only_there"]) == (1, 3)
+    assert d["stretches"] == [{"scans": [1, 2], "nodes": 2, "agree_with": "there"},
+                              {"scans": [3, 3], "nodes": 1, "agree_with": "here"},
+                              {"scans": [5, 5], "nodes": 1, "agree_with": "there"}]
+
+
 def test_consistency_cli(tmp_path):
     from conftest import BUNDLED
 
@@ -433,6 +466,9 @@ def test_consistency_cli(tmp_path):
     out = json.loads(r.stdout)
     assert list(out) == [str(run / "trajectory.txt"), str(BUNDLED)]
     assert out[str(BUNDLED)]["scans_checked"] == out[str(run / "trajectory.txt")]["scans_checked"] > 0
+    assert "disputes" in out[str(BUNDLED)] and "disputes" not in out[str(run / "trajectory.txt")]
+    r = slam2d("eval", "consistency", run / "trajectory.txt", "--against", BUNDLED)
+    assert r.returncode == 0 and r.stdout.count("\n") == 3 and "disputed with the first" in r.stdout, r.stdout
     r = slam2d("eval", "consistency", run / "trajectory.txt")
     assert r.returncode == 0 and r.stdout.count("\n") == 1 and "agreeing" in r.stdout
     # a trajectory with no run folder beside it: the log must be named

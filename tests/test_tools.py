@@ -206,8 +206,16 @@ def test_benchmark_tables_show_health_and_targets():
     sparse["slam2d"]["loops_vs_ground_truth"] = {
         "final_graph": {"true": 3, "false": 1, "unknown": 0, "precision": 0.75},
         "accepted": {"true": 3, "false": 2, "unknown": 0, "precision": 0.6}, "recall": {"episodes": 4, "closed": 2}}
+    sparse["slam2d"]["consistency_vs_ground_truth"] = {
+        "slam2d": {"mean_violation": 0.0327, "revisit_mean_violation": 0.0421},
+        "ground_truth": {"mean_violation": 0.0381, "revisit_mean_violation": 0.0481, "disputes": {
+            "with": "slam2d", "agree_only_here": 26, "agree_only_there": 60,
+            "stretches": [{"scans": [1042, 1047], "nodes": 5, "agree_with": "there"},
+                          {"scans": [490, 492], "nodes": 3, "agree_with": "here"}]}}}
     line = benchmark.sparse_table([sparse]).splitlines()[2]
     assert "| 0.120 | ≤ 0.15 | yes | 1.0090; 0.074 |" in line and "75.0 % of 4 (60.0 % of 5)" in line and "2 of 4" in line
+    assert ("| 0.0327 / 0.0421; 0.0381 / 0.0481; disputed scans: 60 at slam2d's poses only (longest: scans "
+            "1042–1047), 26 at the ground truth's only (longest: scans 490–492) |") in line
     assert line.rstrip().endswith("| BROKEN |")
 
 

@@ -98,7 +98,7 @@ def degraded_table(rows, kind: str = "degraded") -> str:
 
 def sparse_table(rows) -> str:
     target = TARGETS["sparse_ate_rmse_m"]
-    lines = [f"| dataset (sparse) | system | scans | wall s | peak RSS MB | ATE RMSE m | target ≤ {target} m | met | scale (Sim(2)); ATE RMSE after it m | ATE RMSE over the seeds: median (min–max) m; seeds whose health is not OK | loops accepted / final / searched | loop precision vs ground truth, final graph (all accepted; the other seeds' final graphs) | its misses, by the raw scans: loop right / truth right / undecided | loop precision vs slam2d's run of the raw log, final graph (the other seeds') | recall (revisit episodes closed) | free-space violation, all scans / revisits: slam2d; ground truth | health |",
+    lines = [f"| dataset (sparse) | system | scans | wall s | peak RSS MB | ATE RMSE m | target ≤ {target} m | met | scale (Sim(2)); ATE RMSE after it m | ATE RMSE over the seeds: median (min–max) m; seeds whose health is not OK | loops accepted / final / searched | loop precision vs ground truth, final graph (all accepted; the other seeds' final graphs) | its misses, by the raw scans: loop right / truth right / undecided | loop precision vs slam2d's run of the raw log, final graph (the other seeds') | recall (revisit episodes closed) | free-space violation, all scans / revisits: slam2d; ground truth; disputed scans | health |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
         n, s = row["dataset"], row["slam2d"]
@@ -144,14 +144,25 @@ def _other_seeds(by_seed: dict | None) -> str:
 
 
 def _consistency(c: dict | None) -> str:
-    """'slam2d all / revisits; ground truth all / revisits' mean free-space violation shares."""
+    """'slam2d all / revisits; ground truth all / revisits' mean free-space violation shares, then the
+    disputed scans: how many agree with their neighbours at slam2d's poses only, and at the ground
+    truth's only, with the longest such stretch of each."""
     if not c or "slam2d" not in c or "ground_truth" not in c:
         return "—"
 
     def pair(x):
         return " / ".join("—" if x[k] is None else f"{x[k]:.4f}" for k in ("mean_violation", "revisit_mean_violation"))
 
-    return f"{pair(c['slam2d'])}; {pair(c['ground_truth'])}"
+    out = f"{pair(c['slam2d'])}; {pair(c['ground_truth'])}"
+    d = c["ground_truth"].get("disputes")
+    if d is not None:  # 'here' is the ground truth, 'there' slam2d (the first trajectory)
+        def longest(side):
+            s = next((s for s in d["stretches"] if s["agree_with"] == side), None)
+            return f" (longest: scans {s['scans'][0]}–{s['scans'][1]})" if s and s["nodes"] > 1 else ""
+
+        out += (f"; disputed scans: {d['agree_only_there']} at slam2d's poses only{longest('there')}, "
+                f"{d['agree_only_here']} at the ground truth's only{longest('here')}")
+    return out
 
 
 def _spread(by_seed: dict | None, health: dict | None = None) -> str:

@@ -588,7 +588,9 @@ def main(argv=None) -> int:
                "scans' free-space test of the map health report, put to both trajectories on the same scans "
                "(`slam2d eval consistency RUN/trajectory.txt --against GT`): the mean share of a scan's hits inside "
                "its neighbours' free space, over all scans and over the revisits (neighbours from other passes); "
-               "lower is better supported.", "",
+               "lower is better supported. Then the scans each trajectory alone places where they agree with their "
+               "neighbours (disputed scans; the command lists the longest stretches): a run's own failure shows "
+               "among the ground truth's, a jump of the ground truth among slam2d's.", "",
                sparse_table(by_suite["sparse"]), ""]
     if "clinic" in suites:
         md += ["## fr-clinic", "", "No ground truth: wall time, peak RSS, loop closures and the run's own health report.",

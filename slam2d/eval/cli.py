@@ -204,6 +204,13 @@ def _consistency(args) -> int:
         print(f"{name}: {c['scans_checked']} scans, {c['scans_agreeing']} agreeing, mean violation {c['mean_violation']}; "
               f"revisits {c['revisits_checked']}, {c['revisits_agreeing']} agreeing, mean violation "
               f"{c['revisit_mean_violation']}")
+        d = c.get("disputes")
+        if d is not None:  # the scans that agree with their neighbours at one of the two trajectories only
+            whose = {"here": "these", "there": "the first's"}
+            where = ", ".join(f"scans {s['scans'][0]}-{s['scans'][1]} ({s['nodes']} at {whose[s['agree_with']]})"
+                              for s in d["stretches"])
+            print(f"  disputed with the first: {d['agree_only_here']} scans agree with their neighbours only at these "
+                  f"poses, {d['agree_only_there']} only at the first's{'; longest: ' + where if where else ''}")
     return 0
 
 
