@@ -26,8 +26,7 @@ def observed_scores(submap_grid, match_grid, poses, points: np.ndarray) -> list[
         common &= submap_grid.observed_at(c)
     if not common.any():
         return None
-    scale = float(getattr(match_grid, "scale", 1.0))
-    return [float(match_grid.values[c[common, 1], c[common, 0]].mean()) * scale for c in cells]
+    return [float(match_grid.values[c[common, 1], c[common, 0]].mean()) * float(match_grid.scale) for c in cells]
 
 
 __all__ = ["observed_scores"]
