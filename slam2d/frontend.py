@@ -372,8 +372,11 @@ class LocalSlam:
             rt = self.cfg.real_time_matcher
             lin, ang = self.windows(self.extrapolator.motion(predicted))
             lin_max, ang_max = self.largest_windows()
+            # the wheel odometry's translation error as a prior, its motion window at ``window_sigmas`` σ
+            # (a constant-velocity prediction is an assumption, not a measurement: no prior)
+            prior = lin / rt.window_sigmas if rt.window_sigmas > 0 and odom is not None else 0.0
             m = self.matcher.match(grid, predicted, points, linear_window=lin, angular_window=ang,
-                                   largest=(lin_max, ang_max))
+                                   largest=(lin_max, ang_max), prior_sigma=prior)
             typical = self._typical_score()
             limit = None if typical is None else rt.min_relative_score * typical
             low = m is not None and not m.on_edge and limit is not None and m.score < limit

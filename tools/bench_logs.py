@@ -94,6 +94,10 @@ SIM_VARIANTS = {
     "fast": {"speed": 2.0, "turn_rate": 2.5},                            # 0.4 m and up to 29° between scans
     "bad-odometry": {"odom_scale_error": 0.08, "odom_rot_scale_error": 0.15, "odom_rot_sigma": 0.03},
     "dense": {"beams": 1081, "max_range": 30.0, "rate_hz": 20.0},      # a modern scanner at 20 Hz
+    # scanners whose range ends inside the corridors and that see no wall behind: a 240°, 5.6 m one
+    # (Hokuyo URG-04LX class) at 10 Hz, and a 180°, 1°, 8 m one with 3 cm noise at 5 Hz
+    "fov-240": {"beams": 683, "fov_deg": 240.0, "max_range": 5.6, "rate_hz": 10.0},
+    "fov-180": {"beams": 181, "fov_deg": 180.0, "max_range": 8.0, "range_sigma": 0.03},
 }
 
 

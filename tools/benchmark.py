@@ -21,7 +21,8 @@ Suites (issue 11), all in one run by default, `--suite` selects some:
              scans with other odometry noise, slam2d alone);
   clinic     fr-clinic (`datasets/fr-clinic/*.clf.bz2`): wall time, peak RSS, loop closures, health;
   simulated  the simulator with sensors and robots the real logs do not cover (`bench_logs.SIM_VARIANTS`:
-             a 4 m scanner, a fast robot, bad odometry, a 1081-beam 20 Hz scanner); ATE and loop
+             a 4 m scanner, a fast robot, bad odometry, a 1081-beam 20 Hz scanner, 240° / 5.6 m and
+             180° / 8 m scanners); ATE and loop
              precision against its ground truth, beside the odometry's ATE.
 `--datasets` names the dataset folders to keep (intel, aces, fr079, orebro, fr-clinic, ...).
 Generated logs go to a cache folder outside the repository (`--cache`, default

@@ -67,6 +67,7 @@ class SimConfig:
     speed: float = 0.8
     turn_rate: float = 1.0
     beams: int = 360
+    fov_deg: float = 360.0  # below 360: the beams span this field of view, centred ahead, both ends included
     max_range: float = 12.0
     range_sigma: float = 0.015
     dropout_prob: float = 0.01
@@ -120,8 +121,13 @@ def simulate(cfg: SimConfig):
     rng = np.random.default_rng(cfg.seed)
     segs = floor_plan()
     gt = ground_truth_path(cfg)
-    inc = 2 * math.pi / cfg.beams
-    angles_rel = -math.pi + inc * np.arange(cfg.beams)
+    if cfg.fov_deg >= 360.0:
+        inc = 2 * math.pi / cfg.beams
+        angles_rel = -math.pi + inc * np.arange(cfg.beams)
+    else:
+        fov = math.radians(cfg.fov_deg)
+        inc = fov / (cfg.beams - 1)
+        angles_rel = -0.5 * fov + inc * np.arange(cfg.beams)
     odom = gt[0].copy()
     for i, pose in enumerate(gt):
         if i > 0:

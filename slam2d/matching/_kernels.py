@@ -554,6 +554,22 @@ def apply_delta_penalty(scores, angles, w_t, w_r, res):
 
 
 @njit(cache=True, nogil=True)
+def apply_translation_prior(scores, res, sigma, n_points):
+    """Multiply ``scores[a, dy + w, dx + w]`` in place by exp(−d² / (2σ²N)), d = |(dx, dy)|·res: a
+    Gaussian prior on the translation from the prediction, in the units of a mean score over N
+    points (``real_time.RealTimeCorrelativeScanMatcher.match``)."""
+    a_n, k, _ = scores.shape
+    w = (k - 1) // 2
+    for iy in range(k):
+        dy = (iy - w) * res
+        for ix in range(k):
+            dx = (ix - w) * res
+            f = math.exp(-((dx * dx + dy * dy) / (sigma * sigma)) / (2.0 * n_points))
+            for a in range(a_n):
+                scores[a, iy, ix] *= f
+
+
+@njit(cache=True, nogil=True)
 def best_separated_peak(scores, a, iy, ix, lin, ang):
     """The highest positive local maximum of ``scores`` (≥ every neighbour of its 3 × 3 × 3
     neighbourhood inside the array) outside the box of ``ang`` angle steps and ``lin`` cells around
