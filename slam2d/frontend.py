@@ -379,6 +379,10 @@ class LocalSlam:
                                    largest=(lin_max, ang_max), prior_sigma=prior)
             typical = self._typical_score()
             limit = None if typical is None else rt.min_relative_score * typical
+            if m is not None and m.scan_on_edge and not m.on_edge and (limit is None or m.score < limit):
+                # the prior made a peak of scores that still rise at the window's edge; a fit below
+                # the trust limit is no evidence of a pose inside the window: as without the prior
+                m.on_edge = True
             low = m is not None and not m.on_edge and limit is not None and m.score < limit
             skipped = low and self._searched_in_vain(predicted)
             self.num_recovery_skipped += skipped

@@ -134,3 +134,49 @@ def test_a_prediction_without_odometry_gets_no_prior():
     *_, a = _local_run(0.0, use_odometry=False, n=60)
     *_, b = _local_run(3.0, use_odometry=False, n=60)
     np.testing.assert_array_equal(a, b)
+
+
+def test_the_prior_makes_no_peak_of_scores_rising_to_the_edge():
+    """Scores that rise all the way to the window's edge (the true pose lies beyond it) peak
+    inside the window once the prior multiplies them; ``scan_on_edge`` keeps what the scan said."""
+    values = np.tile(np.linspace(0.2, 0.9, 60, dtype=np.float32), (60, 1))  # rises along +x
+    grid = MatchGrid(values, np.zeros(2), 0.05, 0.0)
+    pts = np.c_[np.zeros(5), np.linspace(-0.1, 0.1, 5)]
+    m = RealTimeCorrelativeScanMatcher(0.5, 0.0, 0)
+    predicted = np.array([1.5, 1.5, 0.0])
+    plain = m.match(grid, predicted, pts, linear_window=0.5, angular_window=0.0)
+    assert plain.on_edge and plain.scan_on_edge and plain.pose[0] == pytest.approx(2.0)
+    prior = m.match(grid, predicted, pts, linear_window=0.5, angular_window=0.0, prior_sigma=0.3)
+    assert 1.5 < prior.pose[0] < 1.99  # the posterior peaks inside the window (in x) ...
+    assert prior.scan_on_edge  # ... which the scan's own scores do not
+
+
+def test_a_low_fit_the_prior_pulled_off_the_edge_goes_to_the_recovery_search(monkeypatch):
+    """Local SLAM treats such a peak as on the edge when its score is below the trust limit (as
+    it would without the prior: a recovery search, not a weak match at the peak)."""
+    from slam2d.config import config_from_dict
+    from slam2d.frontend import LocalSlam
+    from slam2d.io.source import open_source
+    from conftest import BUNDLED
+
+    scans = []
+    for s in open_source(BUNDLED):
+        scans.append(s)
+        if len(scans) == 40:
+            break
+    tracker = LocalSlam(config_from_dict({"real_time_matcher": {"window_sigmas": 3.0}}), loop_closure=True)
+    for s in scans[:39]:
+        tracker.add_scan(s)
+    assert tracker._typical_score() is not None
+    real = tracker.matcher.match
+
+    def pulled_off_the_edge(*args, **kwargs):
+        r = real(*args, **kwargs)
+        r.score, r.on_edge, r.scan_on_edge = 0.1, False, True  # a low fit the prior made a peak of
+        return r
+
+    monkeypatch.setattr(tracker.matcher, "match", pulled_off_the_edge)
+    before = tracker.num_recovery_searches
+    res = tracker.add_scan(scans[39])
+    assert tracker.num_recovery_searches == before + 1
+    assert res.quality != "weak"

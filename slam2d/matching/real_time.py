@@ -36,7 +36,10 @@ passes the odometry's σ when ``real_time_matcher.window_sigmas`` is set, off by
 The translation from the prediction is then taken as Gaussian with that σ, and each candidate's mean score is
 multiplied by exp(−d²/(2σ²N)), N the scan's points: the posterior's own weighing when the mean
 score is read as a per-point likelihood of N independent points (the covariance's reading
-above). A clearly better fit anywhere in the window still wins.
+above). A clearly better fit anywhere in the window still wins. Scores that still rise at the
+window's edge (local SLAM's sign that the true pose lies beyond it) become a peak inside it
+once the prior falls off there: ``scan_on_edge`` keeps what the scan's own scores said, and
+local SLAM treats such a peak below its trust limit as on the edge.
 """
 from __future__ import annotations
 
@@ -59,6 +62,9 @@ class MatchResult:
     params: SearchParameters | None = None
     num_points: int = 0
     on_edge: bool = False     # the best pose lies on the search window's edge
+    #: the best pose before the prediction's prior (``prior_sigma``) lies on the edge: the scan's
+    #: own scores still rise there (equal to ``on_edge`` without a prior)
+    scan_on_edge: bool = False
     escalated: bool = False   # found by the repeated search with the largest windows
     raw_scores: np.ndarray | None = None  # the scores without the delta penalty (exhaustive mode)
     prior: np.ndarray | None = None       # covariance of an unmatched scan (the truncation ceiling)
@@ -169,7 +175,10 @@ class RealTimeCorrelativeScanMatcher:
         _kernels.apply_delta_penalty(scores, np.ascontiguousarray(params.angles, dtype=np.float64),
                                      float(self.penalty.translation_weight), float(self.penalty.rotation_weight),
                                      float(res))
+        scan_edge = None
         if prior_sigma > 0:
+            la, ly, lx = np.unravel_index(int(np.argmax(scores)), scores.shape)
+            scan_edge = ly in (0, 2 * w) or lx in (0, 2 * w) or la in (0, len(params.angles) - 1)
             _kernels.apply_translation_prior(scores, float(res), float(prior_sigma), float(max(1, points.shape[0])))
         a, iy, ix = np.unravel_index(int(np.argmax(scores)), scores.shape)
         best = float(scores[a, iy, ix])
@@ -178,7 +187,7 @@ class RealTimeCorrelativeScanMatcher:
         pose = np.array([predicted[0] + (ix - w) * res, predicted[1] + (iy - w) * res, predicted[2] + params.angles[a]])
         edge = iy in (0, 2 * w) or ix in (0, 2 * w) or a in (0, len(params.angles) - 1)
         return MatchResult(pose, best, n_cand, scores, params, points.shape[0], on_edge=edge, raw_scores=raw,
-                           prior=self.prior)
+                           prior=self.prior, scan_on_edge=edge if scan_edge is None else scan_edge)
 
 
 def _margin(scores, a, iy, ix, lin=2, ang=2) -> float:
