@@ -33,10 +33,10 @@ away 0.02 % of its score; a scanner whose range ends inside a corridor scores th
 of the walls on cells no scan has observed yet at its true pose, and on mapped wall slid back
 one step: 0.1 to 0.3 % more, so local SLAM loses travel along such corridors (the frontend
 passes the odometry's σ when ``real_time_matcher.window_sigmas`` is set, off by default: README).
-The translation from the prediction is then taken as Gaussian with that σ, and each candidate's mean score is
-multiplied by exp(−d²/(2σ²N)), N the scan's points: the posterior's own weighing when the mean
-score is read as a per-point likelihood of N independent points (the covariance's reading
-above). A clearly better fit anywhere in the window still wins. Scores that still rise at the
+The translation from the prediction is then taken as Gaussian with that σ, and each candidate's
+mean score is multiplied by exp(−d²/(2σ²N)), N the scan's points: the posterior's own weighing
+when the mean score is read as a per-point likelihood of N independent points (the covariance's
+reading above). A clearly better fit anywhere in the window still wins. Scores that still rise at the
 window's edge (local SLAM's sign that the true pose lies beyond it) become a peak inside it
 once the prior falls off there: ``scan_on_edge`` keeps what the scan's own scores said, and
 local SLAM treats such a peak below its trust limit as on the edge.
@@ -169,23 +169,25 @@ class RealTimeCorrelativeScanMatcher:
                                            float(params.angles[a]), dx, dy, 1)
             pose = np.array([predicted[0] + dx * res, predicted[1] + dy * res, predicted[2] + params.angles[a]])
             edge = max(abs(dx), abs(dy)) == w or a in (0, len(params.angles) - 1)
-            return MatchResult(pose, score, n_cand, on_edge=edge)
+            return MatchResult(pose, score, n_cand, on_edge=edge, scan_on_edge=edge)
         raw = exhaustive(grid, cells, w)
         scores = raw.copy()
         _kernels.apply_delta_penalty(scores, np.ascontiguousarray(params.angles, dtype=np.float64),
                                      float(self.penalty.translation_weight), float(self.penalty.rotation_weight),
                                      float(res))
+        def best_on_edge():
+            a, iy, ix = np.unravel_index(int(np.argmax(scores)), scores.shape)
+            return (a, iy, ix), iy in (0, 2 * w) or ix in (0, 2 * w) or a in (0, len(params.angles) - 1)
+
         scan_edge = None
         if prior_sigma > 0:
-            la, ly, lx = np.unravel_index(int(np.argmax(scores)), scores.shape)
-            scan_edge = ly in (0, 2 * w) or lx in (0, 2 * w) or la in (0, len(params.angles) - 1)
+            scan_edge = best_on_edge()[1]
             _kernels.apply_translation_prior(scores, float(res), float(prior_sigma), float(max(1, points.shape[0])))
-        a, iy, ix = np.unravel_index(int(np.argmax(scores)), scores.shape)
+        (a, iy, ix), edge = best_on_edge()
         best = float(scores[a, iy, ix])
         if best <= min_score:
             return None
         pose = np.array([predicted[0] + (ix - w) * res, predicted[1] + (iy - w) * res, predicted[2] + params.angles[a]])
-        edge = iy in (0, 2 * w) or ix in (0, 2 * w) or a in (0, len(params.angles) - 1)
         return MatchResult(pose, best, n_cand, scores, params, points.shape[0], on_edge=edge, raw_scores=raw,
                            prior=self.prior, scan_on_edge=edge if scan_edge is None else scan_edge)
 
