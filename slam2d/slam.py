@@ -158,6 +158,7 @@ class Slam:
         self._counts = {"scans": 0, "nodes": 0, "invalid_readings": 0, "no_return_readings": 0, "readings": 0,
                         "timestamp_reversals": 0, "beams_min": None, "beams_max": None}
         self._t_start = None
+        self._caller_cpu = 0.0  # the calling thread's CPU time in add_scan [s]
         self._finished = False
 
     @classmethod
@@ -180,7 +181,7 @@ class Slam:
         if self._finished:
             raise UsageError("add_scan after finish: start a new Slam")
         self.start()
-        t_call = time.perf_counter()
+        t_call, c_call = time.perf_counter(), time.thread_time()
         i = len(self._times)
         if scan.index != i:  # node ids are input positions
             scan = dataclasses.replace(scan, index=i)
@@ -212,6 +213,7 @@ class Slam:
         local = self._local[-1]
         glob = local.copy() if gs is None else compose(gs.correction, local)
         self._stage("add_scan", (time.perf_counter() - t_call) * 1e3)  # the latency a caller sees
+        self._caller_cpu += time.thread_time() - c_call
         return Estimate(i, scan.timestamp, local.copy(), glob, bool(res.inserted), res.quality)
 
     def _covariance_of(self, res):
@@ -330,6 +332,12 @@ class Slam:
         from slam2d.summary import run_summary
 
         timings = {k: _percentiles(v) for k, v in self._stage_ms.items()}
+        if "add_scan" in timings:
+            # the caller's CPU time against its wall time (total_s): the rest it waited, mostly for the
+            # interpreter lock while global SLAM's worker ran Python beside it
+            timings["add_scan"]["cpu_s"] = round(self._caller_cpu, 4)
+        if self._background is not None:
+            timings["global_worker_cpu_s"] = round(self._background.cpu_s, 3)
         times = np.array(self._times)
         s = run_summary(self.source_name, self.mode, times, self._counts, timings, map_s, self.tracker)
         gt = self._ground_truth

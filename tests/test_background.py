@@ -30,6 +30,30 @@ def test_background_gives_the_outputs_of_the_caller_thread(tmp_path):
     assert a == b and sum(r["in_final_graph"] for r in a) >= 5
     s = json.loads((outs[True] / "summary.json").read_text())["loop_closure"]
     assert s["solver_process_peak_rss_mb"] > 0 and s["optimizations"] >= 2
+    for background in (True, False):
+        t = json.loads((outs[background] / "summary.json").read_text())["timings"]
+        # the caller's CPU time in add_scan: some, and never more than its wall time
+        assert 0 < t["add_scan"]["cpu_s"] <= t["add_scan"]["total_s"] + 1e-3
+        assert ("global_worker_cpu_s" in t) == background
+    assert json.loads((outs[True] / "summary.json").read_text())["timings"]["global_worker_cpu_s"] > 0
+
+
+def test_the_worker_cpu_time_counts_its_calls_work_not_its_waits():
+    import time
+
+    b = Background()
+
+    def spin(seconds):
+        end = time.thread_time() + seconds
+        while time.thread_time() < end:
+            pass
+
+    b.submit(spin, 0.2)
+    b.submit(time.sleep, 0.3)  # waiting burns no CPU
+    b.wait()
+    spin(0.2)  # nor does the caller's own work count
+    b.join()
+    assert 0.19 <= b.cpu_s < 0.3
 
 
 def test_the_caller_process_does_not_load_gtsam():

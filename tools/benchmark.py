@@ -618,6 +618,12 @@ def main(argv=None) -> int:
                       f"over {a['pairs']} key scans; timings p50/p99 per scan: "
                       + ", ".join(f"{k} {v['p50_ms']:.2f}/{v['p99_ms']:.2f} ms" for k, v in row['slam2d']['timings'].items()
                                   if isinstance(v, dict) and k in ('frontend', 'match', 'refine', 'insert')))
+        t = row["slam2d"].get("timings", {})
+        if "cpu_s" in t.get("add_scan", {}):
+            worker = t.get("global_worker_cpu_s")
+            md.append(f"  add_scan: {t['add_scan']['total_s']:.1f} s in all, {t['add_scan']['cpu_s']:.1f} s of it on the "
+                      f"caller's CPU (the rest it waited, mostly for the interpreter lock)"
+                      + (f"; global SLAM's worker thread: {worker:.1f} s CPU" if worker is not None else ""))
         lo = row.get("loops", {}).get("reference", {})
         if lo.get("recall"):
             rc = lo["recall"]

@@ -20,6 +20,7 @@ from __future__ import annotations
 import queue
 import sys
 import threading
+import time
 import weakref
 
 #: the interpreter's thread switch interval [s] while a worker runs (``_SwitchInterval``)
@@ -60,8 +61,9 @@ class Background:
         self._error: BaseException | None = None
         self._idle = threading.Event()  # set while the worker waits for work
         self._waited = threading.Event()  # set while the caller waits for the worker: its cores are free
-        self._thread = threading.Thread(target=_work, args=(self._queue, self, self._idle, self._waited), name=name,
-                                        daemon=True)
+        self._cpu = [0.0]  # the worker's CPU time in the calls it ran [s] (``cpu_s``)
+        self._thread = threading.Thread(target=_work, args=(self._queue, self, self._idle, self._waited, self._cpu),
+                                        name=name, daemon=True)
         # counted here, not when the thread gets going: a worker that has not started yet still lives
         # for ``_SwitchInterval`` (another's end must not restore the interval before it runs)
         _SwitchInterval.enter()
@@ -77,6 +79,12 @@ class Background:
         """Queue ``fn(*args)``; raises what an earlier call raised."""
         self.raise_error()
         self._queue.put((fn, args))
+
+    @property
+    def cpu_s(self) -> float:
+        """The worker thread's CPU time in the calls it has run [s] (``time.thread_time``): beside the
+        caller's own (``Slam``'s ``add_scan`` timing), what global SLAM costs the cores."""
+        return self._cpu[0]
 
     def idle(self) -> bool:
         """Nothing queued and nothing running (a hint: the worker may take up work as this returns)."""
@@ -109,7 +117,7 @@ class Background:
             raise self._error
 
 
-def _work(q: queue.SimpleQueue, owner: Background, idle: threading.Event, waited: threading.Event):
+def _work(q: queue.SimpleQueue, owner: Background, idle: threading.Event, waited: threading.Event, cpu: list):
     import numba
 
     # holds the Background only while reporting an error, so dropping it ends the thread
@@ -117,12 +125,12 @@ def _work(q: queue.SimpleQueue, owner: Background, idle: threading.Event, waited
     del owner
     threads = numba.get_num_threads()  # numba's thread count is per calling thread
     try:  # entered by ``Background.__init__``
-        _drain(q, ref, idle, waited, threads)
+        _drain(q, ref, idle, waited, threads, cpu)
     finally:
         _SwitchInterval.leave()
 
 
-def _drain(q, ref, idle, waited, threads):
+def _drain(q, ref, idle, waited, threads, cpu):
     import numba
 
     failed = False
@@ -138,7 +146,9 @@ def _drain(q, ref, idle, waited, threads):
         fn, args = item
         try:
             numba.set_num_threads(threads if waited.is_set() else 1)
+            c0 = time.thread_time()
             fn(*args)
+            cpu[0] += time.thread_time() - c0
         except BaseException as e:  # noqa: BLE001 - handed to the caller's thread
             failed = True
             b = ref()
