@@ -212,8 +212,9 @@ class Slam:
         self.observer.on_scan(scan, res)
         local = self._local[-1]
         glob = local.copy() if gs is None else compose(gs.correction, local)
+        c_end = time.thread_time()  # read inside the wall interval, so the CPU time never exceeds it
         self._stage("add_scan", (time.perf_counter() - t_call) * 1e3)  # the latency a caller sees
-        self._caller_cpu += time.thread_time() - c_call
+        self._caller_cpu += c_end - c_call
         return Estimate(i, scan.timestamp, local.copy(), glob, bool(res.inserted), res.quality)
 
     def _covariance_of(self, res):
