@@ -31,6 +31,8 @@ import numpy as np
 from slam2d.allocator import map_large_blocks, return_freed_memory
 from slam2d.config import SlamConfig, load_config
 from slam2d.errors import InputError, UsageError
+from slam2d import kernel_cache
+from slam2d.gc_freeze import freeze_startup_objects
 from slam2d.geometry import between, compose
 from slam2d.grid.map_builder import build_map
 from slam2d.grid.probability_grid import ProbabilityGrid
@@ -113,6 +115,14 @@ class Slam:
     progress): see ``slam2d.observer``. ``source_name`` names the input in error messages.
     """
 
+    def __new__(cls, *args, **kwargs):
+        # before the first scan: the kernels earlier runs needed loaded (``kernel_cache``), then the
+        # start-up objects out of the collector's way, before this Slam exists: a Slam (and any cycle
+        # through it) is never among them (``gc_freeze``)
+        kernel_cache.load_remembered()
+        freeze_startup_objects()
+        return super().__new__(cls)
+
     def __init__(self, config: SlamConfig | None = None, *, mode: str = "global", observer: Observer | None = None,
                  source_name: str = "input"):
         if mode not in MODES:
@@ -124,6 +134,7 @@ class Slam:
         self.source_name = str(source_name)
         self.observer = observer or Observer()
         map_large_blocks()  # grids, stacks and score volumes come and go for hours (``allocator``)
+        self._kernels_before = kernel_cache.loaded()  # what this run loads beyond it is remembered at finish
         if mode == "odometry":
             from slam2d.odometry import OdometryTracker
 
@@ -304,6 +315,7 @@ class Slam:
         result = SlamResult(cfg, self._stamps, np.array(self._times), poses, grid, summary, self.nodes,
                             list(gs.records) if gs is not None else [], graph_of(self.tracker, self.nodes, poses, gs))
         self.observer.on_finish(result)
+        kernel_cache.remember(self._kernels_before)
         return result
 
     def _refinement_points(self) -> list[np.ndarray | None]:
