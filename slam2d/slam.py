@@ -28,10 +28,10 @@ from typing import NamedTuple
 
 import numpy as np
 
+from slam2d import kernel_cache
 from slam2d.allocator import map_large_blocks, return_freed_memory
 from slam2d.config import SlamConfig, load_config
 from slam2d.errors import InputError, UsageError
-from slam2d import kernel_cache
 from slam2d.gc_freeze import freeze_startup_objects
 from slam2d.geometry import between, compose
 from slam2d.grid.map_builder import build_map
