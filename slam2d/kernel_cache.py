@@ -8,13 +8,13 @@ real-time system loads before the data comes.
 
 Which signatures to load: not every one the cache holds. It also holds the signatures of
 kernels only other kernels call (compiled into their callers' code) and of calls the tests make
-with other types, and each loaded signature costs the process about a megabyte of code. So
+with other types, and each loaded signature costs the process the memory of its code. So
 ``Slam.finish`` remembers, beside the kernel's cache index, the cached signatures its run loaded
 (``remember``), and the next process's first ``Slam`` loads those (``load_remembered``): on a
 machine where slam2d ran before, what a run needs is loaded before its first scan.
 
 numba has no public call for "what does the cache hold", so the index is read through the
-dispatcher's ``_cache`` attribute (the layout of numba 0.59-0.68). Where anything fails nothing is
+dispatcher's ``_cache`` attribute (as numba 0.68 lays it out). Where anything fails nothing is
 loaded ahead and kernels load on first use: results never depend on this, only when loads happen.
 """
 from __future__ import annotations
