@@ -1,10 +1,10 @@
 """The objects alive before the first ``Slam`` moved out of the cyclic garbage collector's way.
 
 CPython's cyclic collector walks every tracked object on a full collection, and after importing
-numba, gtsam and numpy a process holds some hundred thousand of them, nearly all modules,
+numba, gtsam and numpy a process holds a great many of them, nearly all modules,
 classes and functions that live as long as the process. A full collection runs in whichever
 thread allocates at that moment and holds the interpreter lock throughout, so it stalls local
-SLAM even when global SLAM's worker set it off: on the longest logs it was the slowest
+SLAM even when global SLAM's worker set it off, and on long logs it can be the slowest
 ``Slam.add_scan`` of a run. ``freeze_startup_objects`` moves the objects alive at the first
 ``Slam`` to the collector's permanent generation (``gc.freeze``, as servers do before forking),
 so later collections walk only what was made since.
