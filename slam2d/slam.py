@@ -22,6 +22,7 @@ import json
 import os
 import threading
 import time
+from array import array
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
@@ -159,13 +160,14 @@ class Slam:
                 # local SLAM's parallel kernels leave the second core to the worker while it works
                 self.tracker.cores.busy = lambda b=self._background: not b.idle()
         self._stamps: list[str] = []
-        self._times: list[float] = []
-        self._local: list[np.ndarray] = []
+        # per scan, in flat arrays of float64 (a list holds a Python object per entry, several times the memory)
+        self._times = array("d")
+        self._local = array("d")  # x, y, θ of every scan, one after the other
         self._ground_truth: list = []
         self.nodes: list[Node] = []
         self._keep_points = self.global_slam is not None and cfg.final_refinement.enabled
         self._points: list[np.ndarray | None] = []
-        self._stage_ms: dict[str, list[float]] = {}
+        self._stage_ms: dict[str, array] = {}  # per stage, its time in every call [ms]
         self._counts = {"scans": 0, "nodes": 0, "invalid_readings": 0, "no_return_readings": 0, "readings": 0,
                         "timestamp_reversals": 0, "beams_min": None, "beams_max": None}
         self._t_start = None
@@ -205,7 +207,8 @@ class Slam:
         self._stamps.append(scan.timestamp_text or f"{scan.timestamp:.9f}")
         self._times.append(scan.timestamp)
         self._ground_truth.append(scan.ground_truth)
-        self._local.append(np.asarray(res.local_pose, dtype=float))
+        local = np.array(res.local_pose, dtype=float).reshape(3)
+        self._local.extend(local.tolist())
         if self._keep_points:
             self._points.append(_kept_points(res))
         gs = self.global_slam
@@ -221,7 +224,6 @@ class Slam:
         if res.inserted:
             self.nodes.append(Node.of(i, scan.timestamp, res.local_pose, res.range_data))
         self.observer.on_scan(scan, res)
-        local = self._local[-1]
         glob = local.copy() if gs is None else compose(gs.correction, local)
         c_end = time.thread_time()  # read inside the wall interval, so the CPU time never exceeds it
         self._stage("add_scan", (time.perf_counter() - t_call) * 1e3)  # the latency a caller sees
@@ -325,7 +327,7 @@ class Slam:
 
     # ---- bookkeeping
     def _stage(self, name, ms):
-        self._stage_ms.setdefault(name, []).append(ms)
+        self._stage_ms.setdefault(name, array("d")).append(ms)
 
     def _count(self, scan):
         c = self._counts

@@ -288,6 +288,50 @@ def test_a_nodes_searches_run_cached_stacks_first_with_the_same_outcome(monkeypa
     assert builds_c < builds_a < builds_b
 
 
+def test_an_unsampled_nodes_loop_points_go_once_its_submaps_are_finished(monkeypatch):
+    """Global SLAM keeps a node's loop points while a search can read them: a sampled node's for good,
+    any other node's until every submap it lies in is finished (``_release_points``). Which nodes
+    lose them is exactly that set, and the run's records and poses are those of a run that keeps
+    every node's points."""
+    scans = list(McapLog(BUNDLED))
+
+    def run(release: bool):
+        cfg = SlamConfig()
+        cfg.loop_closure.background = False
+        if not release:
+            monkeypatch.setattr(GlobalSlam, "_release_points", lambda self, submap: None)
+        slam = Slam(cfg)
+        gs = slam.global_slam
+        without = []  # per finished submap, after global SLAM took it: the nodes without points
+        add = gs.add_finished_submap
+
+        def add_and_look(sub):
+            add(sub)
+            without.append({j for j, n in gs.nodes.items() if "points" not in n})
+
+        gs.add_finished_submap = add_and_look
+        submaps = slam.tracker.all_submaps
+        res = slam.run(scans)
+        monkeypatch.undo()
+        recs = [{k: v for k, v in r.items() if k != "search_ms"} for r in gs.records]
+        return res.poses, recs, gs, without, submaps()
+
+    poses_a, recs_a, gs, without, submaps = run(True)
+    poses_b, recs_b, _, kept, _ = run(False)
+    assert recs_a == recs_b and np.array_equal(poses_a, poses_b)
+    assert not any(kept[-1])
+    finished = set(gs.matchers)
+    holders: dict[int, set] = {}
+    for sub in submaps:
+        for j in sub.node_indices:
+            holders.setdefault(j, set()).add(sub.index)
+    expected = {j for j in gs.nodes if j not in gs._sampled_at and holders.get(j) and holders[j] <= finished}
+    assert without[-1] == expected and len(expected) > len(gs.nodes) // 2
+    assert all("points" in gs.nodes[j] for j in gs._sampled_at)
+    # released as the submaps finish, not only at the end
+    assert 0 < len(without[len(without) // 2]) < len(without[-1])
+
+
 def test_local_match_covariances_are_computed_on_global_slam_s_thread(monkeypatch):
     """``add_scan`` hands global SLAM the local match itself, whose covariance the worker computes:
     none on the caller's thread, and the same graph as covariances computed up front; with no

@@ -91,6 +91,9 @@ class GlobalSlam:
         self.submap_anchor: dict[int, int] = {}  # submap -> scan index of its first node
         self.submap_local: dict[int, np.ndarray] = {}
         self.nodes: dict[int, dict] = {}  # scan index -> {local, time, stamp, points}
+        # per node whose loop points are kept for its submaps: those of them not finished yet
+        # (``_release_points``)
+        self._unfinished_of: dict[int, set[int]] = {}
         self.node_order: list[int] = []
         self.records: list[dict] = []
         self.correction = np.zeros(3)  # global <- local, from the latest optimization
@@ -150,6 +153,8 @@ class GlobalSlam:
                            math.radians(self.lc.min_local_sigma_rotation_deg))
         cov = node_frame_covariance(floored, local_pose[2])
         submaps = {k for k, _ in inserted_into}
+        if submaps:
+            self._unfinished_of[j] = set(submaps)
         if fresh_start and submaps:
             self._segment_start = min(submaps)
             self.fresh_starts.append(j)
@@ -228,6 +233,23 @@ class GlobalSlam:
             self._search(submap.index, int(sampled[i]))
         if self.lc.wide_search:
             self._search_wide(submap)
+        self._release_points(submap)
+
+    def _release_points(self, submap):
+        """A node's loop points serve three kinds of search: its own (a sampled node's, during the run
+        and in the final search), its submaps' (their self-score, the wide search of their content)
+        and new submaps' against earlier sampled nodes. So once every submap a node lies in is
+        finished, an unsampled node's points go: what global SLAM keeps per node then follows the
+        sampled nodes, not every node."""
+        for j in submap.node_indices:
+            left = self._unfinished_of.get(j)
+            if left is None:
+                continue
+            left.discard(submap.index)
+            if not left:
+                del self._unfinished_of[j]
+                if j not in self._sampled_at:
+                    del self.nodes[j]["points"]  # any later use fails loudly, never matches nothing
 
     # ---- searching
     def _search_node(self, j, submaps):
