@@ -80,13 +80,14 @@ class RealTimeMatcherConfig(_Section):
     branch_depth: int = Field(0, ge=0, le=6, description="Levels of the coarse-to-fine search (0 = exhaustive); results equal the exhaustive search on the same lattice.")
     translation_delta_cost_weight: float = Field(0.1, ge=0.0, description="Scores are multiplied by exp(-(w_t·|Δt| + w_r·|Δθ|)²): prefers the predicted pose where the scan alone cannot decide (Cartographer's default 0.1).")
     rotation_delta_cost_weight: float = Field(0.1, ge=0.0, description="w_r of the same penalty [per rad].")
-    window_sigmas: float = Field(0.0, ge=0.0, description="Off (0) by default. Above 0: the wheel odometry's translation error is taken as Gaussian, its motion window (min_linear_search_window + window_motion_fraction × the predicted motion, before the largest window's cap) at this many sigma, and each candidate's mean score is multiplied by exp(-d²/(2σ²N)), N the scan's points (Olson's posterior with the score as a mean per-point likelihood); a prediction without odometry gets none. Where the scan cannot decide (a corridor seen by a short-range scanner, whose newest wall ends score higher slid back onto mapped ground) the odometry then wins. 3 turns the simulated 180°/8 m and 240°/5.6 m scanners' 3.0 and 0.36 m of error into 0.31 and 0.13 m; on the sparse logs it moves results both ways (README). Needs branch_depth 0.")
+    window_sigmas: float = Field(3.0, ge=0.0, description="The wheel odometry as a prior on the match (Olson 2009's posterior): its translation error is taken as Gaussian, its motion window (min_linear_search_window + window_motion_fraction × the predicted motion, before the largest window's cap) at this many sigma, and each candidate's mean score is multiplied by exp(-d²/(2σ²N)), N the scan's points (the score read as a mean per-point likelihood). Where the scan cannot decide (a corridor seen by a scanner whose range ends inside it: its newest wall ends score higher slid back onto mapped ground) the odometry wins; a clearly better fit anywhere in the window still does. A prediction without odometry gets none, nor does an odometry reading identical to the last scan's (standing still, or a stalled odometry stream); 0 turns it off. Needs branch_depth 0.")
     use_odometry: bool = Field(True, description="Predict each scan's pose from the input's wheel odometry where it has one; false: from the velocity of the recent trusted matches, as for an input without odometry (slam2d run --no-odometry).")
 
     @model_validator(mode="after")
     def _prior_needs_exhaustive(self):
         if self.window_sigmas > 0 and self.branch_depth > 0:
-            raise ValueError("window_sigmas needs branch_depth 0 (set window_sigmas: 0 for the coarse-to-fine search)")
+            raise ValueError("window_sigmas (the odometry prior, on by default) needs branch_depth 0: set "
+                             "window_sigmas: 0 for the coarse-to-fine search")
         return self
 
 

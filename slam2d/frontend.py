@@ -373,8 +373,12 @@ class LocalSlam:
             lin, ang = self.windows(self.extrapolator.motion(predicted))
             lin_max, ang_max = self.largest_windows()
             # the wheel odometry's translation error as a prior, its motion window at ``window_sigmas`` σ
-            # (a constant-velocity prediction is an assumption, not a measurement: no prior)
-            prior = lin / rt.window_sigmas if rt.window_sigmas > 0 and odom is not None else 0.0
+            # (a constant-velocity prediction is an assumption, not a measurement: no prior). A reading
+            # identical to the last scan's is no measurement of motion either: the robot stood still
+            # (``_still`` takes those scans that score best where the last one lay) or the odometry stream
+            # stalled while it drove, and a prior that tight would hold the pose where the stream stopped
+            fresh = self.extrapolator.last_odom is None or not np.array_equal(odom, self.extrapolator.last_odom)
+            prior = lin / rt.window_sigmas if rt.window_sigmas > 0 and odom is not None and fresh else 0.0
             m = self.matcher.match(grid, predicted, points, linear_window=lin, angular_window=ang,
                                    largest=(lin_max, ang_max), prior_sigma=prior)
             typical = self._typical_score()

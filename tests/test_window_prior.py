@@ -85,6 +85,8 @@ def test_the_prior_still_lets_a_clear_fit_move_the_pose(dy):
 def test_the_prior_needs_the_exhaustive_search():
     with pytest.raises(ValueError):
         RealTimeMatcherConfig(window_sigmas=3.0, branch_depth=2)
+    with pytest.raises(ValueError, match="window_sigmas: 0 for the coarse-to-fine search"):
+        RealTimeMatcherConfig(branch_depth=2)  # the prior is on by default: the error says what to set
     RealTimeMatcherConfig(window_sigmas=0.0, branch_depth=2)
     m = RealTimeCorrelativeScanMatcher(0.3, 0.1, 2)
     grid = MatchGrid(np.zeros((20, 20), np.float32), np.zeros(2), 0.05, 0.0)
