@@ -62,13 +62,16 @@ class PoseExtrapolator:
     millisecond apart (Intel: bursts, reordered and repeated stamps), and the motion between two
     such scans is matching noise divided by almost nothing, which constant-velocity prediction
     would carry metres into the next scan. Poses that are not trusted matches leave the velocity
-    as it was (``add``)."""
+    as it was (``add``). ``max_turn_rate`` is the fastest turn a velocity has measured so far, and
+    ``measured_time`` the time of the last trusted pose: without odometry, what the robot can
+    have turned since (``LocalSlam._recovery_rotation``)."""
 
     def __init__(self):
         self.last_pose = None
         self.last_time = None
         self.last_odom = None
         self.velocity = np.zeros(3)  # in the robot frame, per second
+        self.max_turn_rate = 0.0  # the largest |velocity θ| so far [rad/s]
         self._history: deque = deque(maxlen=VELOCITY_HISTORY)  # (time, pose), oldest first
         self._periods: deque = deque(maxlen=VELOCITY_HISTORY)
 
@@ -79,6 +82,16 @@ class PoseExtrapolator:
             return compose(self.last_pose, between(self.last_odom, odom))
         dt = max(time_s - self.last_time, 0.0)
         return compose(self.last_pose, self.velocity * dt)
+
+    @property
+    def measured_time(self) -> float | None:
+        """The time of the last trusted pose (None before the first)."""
+        return self._history[-1][0] if self._history else None
+
+    def from_odometry(self, odom) -> bool:
+        """Whether ``predict`` with this odometry reading measures the motion (odometry increments),
+        rather than assuming it (constant velocity)."""
+        return odom is not None and self.last_odom is not None and self.last_pose is not None
 
     def motion(self, predicted) -> np.ndarray:
         """The predicted motion since the last pose, in the last pose's frame."""
@@ -102,6 +115,7 @@ class PoseExtrapolator:
                 t0, p0 = next(((t, p) for t, p in reversed(self._history) if time_s - t >= span), self._history[0])
                 # in the older pose's frame, applied from the newest: right for a constant twist
                 self.velocity = between(p0, pose) / (time_s - t0)
+                self.max_turn_rate = max(self.max_turn_rate, abs(float(self.velocity[2])))
             self._history.append((time_s, pose))
         self.last_pose, self.last_time, self.last_odom = pose, time_s, odom
 
@@ -264,7 +278,8 @@ class LocalSlam:
         return (math.hypot(pose[0] - predicted[0], pose[1] - predicted[1]) <= lin
                 and abs(math.remainder(pose[2] - predicted[2], 2 * math.pi)) <= ang)
 
-    def _takes_recovered(self, wide, m, predicted, limit, submap, grid, points, least: float = 0.0) -> bool:
+    def _takes_recovered(self, wide, m, predicted, limit, submap, grid, points, least: float = 0.0,
+                         odometry: bool = True) -> bool:
         """Whether the recovered match ``wide`` replaces ``m``, the real-time window's match around
         ``predicted`` (None: there is none). It must be trusted where ``m`` was not (``limit``; a
         wide window always holds some pose that scores a little higher, often a wrong one), beat
@@ -277,7 +292,10 @@ class LocalSlam:
         replaces the prediction, within the prediction's error bound (``_plausible_jump``), if it
         beats the prediction itself on the points both put on observed cells and scores at least
         ``least`` (``_least_recovered_score``: the recovery search prunes below it, so pruning still
-        changes no result)."""
+        changes no result). ``odometry`` False: ``predicted`` is the constant-velocity model's, an
+        assumption rather than a measurement, with no error bound of its own (a robot that stopped
+        turning and drove off has left it behind by whatever it did since): the recovery window
+        alone bounds where such a peak may lie."""
         if wide is None:
             return False
         if m is None:
@@ -292,10 +310,23 @@ class LocalSlam:
         # can also outscore it). A clear peak there replaces the prediction (a weak match below
         # ``limit``) where the prediction's own error bound holds it and it explains the scan
         # better than the prediction on the points both put on observed cells
-        return (m.on_edge and not wide.on_edge and wide.score >= least and self._plausible_jump(wide.pose, predicted)
+        return (m.on_edge and not wide.on_edge and wide.score >= least
+                and (not odometry or self._plausible_jump(wide.pose, predicted))
                 and self._scores_higher_where_observed(submap, grid, wide.pose, predicted, points))
 
-    def _recover(self, grid, scan, predicted, points, limit, floor=0.0):
+    def _recovery_rotation(self, time_s: float, odometry: bool) -> float:
+        """The recovery search's rotation half-width [rad]. With odometry, the configured one. Without,
+        at least what the robot can have turned since the last trusted pose, at the fastest turn
+        measured so far (``PoseExtrapolator.max_turn_rate``), up to the full circle: after a gap in
+        the data (scans lost, a logger that paused) a robot may have turned round in place, which
+        constant velocity cannot know."""
+        w = self.wide_matcher.angular_window
+        t = self.extrapolator.measured_time
+        if odometry or t is None:
+            return w
+        return max(w, min(math.pi, self.extrapolator.max_turn_rate * max(time_s - t, 0.0)))
+
+    def _recover(self, grid, scan, predicted, points, limit, floor=0.0, angular_window=None):
         """Branch-and-bound over the recovery windows around each distinct prediction, in the order the
         motion model believes them (odometry, constant velocity, no motion): the first whose best
         match scores ``limit`` (None: any) off the window's edge wins; without one, the best of all.
@@ -311,7 +342,8 @@ class LocalSlam:
         reject. (The fine search may step two cells past the window's edge; a match found there was
         on the edge, never trusted, and is the one case the floor can change.) Most recoveries
         find nothing trusted, and without a floor the search cannot prune before it has met the
-        best pose of a weak scan."""
+        best pose of a weak scan. ``angular_window``: the rotation half-width (``_recovery_rotation``;
+        default the configured one)."""
         hyps = [predicted]
         ex = self.extrapolator
         if ex.last_pose is not None:
@@ -327,7 +359,8 @@ class LocalSlam:
         # built once, searched from every prediction; it pools only the cells those searches can reach
         stack = wide.stack_for(grid, around=tried, reach=reach)
         for h in tried:
-            m = wide._match(grid, h, points, floor, wide.linear_window, wide.angular_window, stack=stack)
+            m = wide._match(grid, h, points, floor, wide.linear_window,
+                            wide.angular_window if angular_window is None else angular_window, stack=stack)
             if m is None:
                 continue
             if not m.on_edge and (limit is None or m.score >= limit):
@@ -351,6 +384,7 @@ class LocalSlam:
         kept = voxel_filter_index(rd.hits, self.cfg.range_filter.voxel_filter_size)
         points = rd.hits[kept]
         odom = scan.odom_pose if self.cfg.real_time_matcher.use_odometry else None
+        from_odometry = self.extrapolator.from_odometry(odom)  # else constant velocity: an assumption
         predicted = self.extrapolator.predict(scan.timestamp, odom)
         pose = predicted
         score = None
@@ -387,6 +421,12 @@ class LocalSlam:
                 # the prior made a peak of scores that still rise at the window's edge; a fit below
                 # the trust limit is no evidence of a pose inside the window: as without the prior
                 m.on_edge = True
+            if m is not None and not from_odometry and lin > lin_max:
+                # constant velocity carried over a gap (or from a noisy velocity) predicts a translation
+                # whose error the largest window cannot hold: a peak inside it is no evidence of the
+                # pose (a corridor holds one wherever the window lies); the recovery searches around
+                # every prediction, no motion included
+                m.on_edge = True
             low = m is not None and not m.on_edge and limit is not None and m.score < limit
             skipped = low and self._searched_in_vain(predicted)
             self.num_recovery_skipped += skipped
@@ -397,14 +437,16 @@ class LocalSlam:
                 # with a match in hand, a recovered one is taken when trusted, or where that match is no peak (below)
                 w = self.wide_matcher
                 floor = least = 0.0
+                rotation = self._recovery_rotation(scan.timestamp, from_odometry)
                 if m is not None and limit is not None:
-                    params = SearchParameters.make(w.linear_window, w.angular_window, grid.resolution, points)
+                    params = SearchParameters.make(w.linear_window, rotation, grid.resolution, points)
                     floor, least = self._recovery_floor(limit, params), self._least_recovered_score(limit, params)
                 with self.cores.share():
-                    wide = self._recover(grid, scan, predicted, points, limit, floor)
+                    wide = self._recover(grid, scan, predicted, points, limit, floor, rotation)
                 timings["recovery"] = (time.perf_counter() - t_rec) * 1e3
                 self.num_recovery_searches += 1
-                if self._takes_recovered(wide, m, predicted, limit, submap, grid, points, least):
+                if self._takes_recovered(wide, m, predicted, limit, submap, grid, points, least,
+                                         odometry=from_odometry):
                     # had the recovery chosen wrong, the pose it replaced was the right one
                     recovered = predicted if m is None else m.pose
                     m = wide

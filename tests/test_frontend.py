@@ -61,6 +61,67 @@ def _run(scans, cfg=None):
     return tracker, [tracker.add_scan(s).local_pose for s in scans]
 
 
+def test_recovers_a_turn_made_during_a_gap_without_odometry():
+    """No odometry, and 3 s of scans lost while the robot turns round in place after driving west at
+    0.8 m/s. Constant velocity puts the next scan 2.7 m further west, facing west; the robot faces
+    east where it stood. The prediction's translation error is beyond the largest window, so no peak
+    inside that window is believed, and the recovery turns as far as the fastest turn measured
+    before could have turned it in 3 s (the full circle here): the scans after the gap are placed right."""
+    scans = _bundled_scans(760)
+    for s in scans:
+        s.odom_pose = None
+    gt = np.array([s.ground_truth for s in scans])
+    turn = range(686, 701)  # the ground truth turns 180° in place over these scans
+    assert abs(math.remainder(gt[701, 2] - gt[685, 2], 2 * math.pi)) > math.radians(170)
+    assert np.hypot(*(gt[701, :2] - gt[685, :2])) < 0.01
+    kept = [s for i, s in enumerate(scans) if i not in turn]
+    after = turn.start
+    tracker, poses = _run(kept)
+    assert tracker.extrapolator.max_turn_rate * (kept[after].timestamp - kept[after - 1].timestamp) > math.pi
+    for j in (after, after + 10, len(kept) - 1):
+        dt, dr = _rel_error(poses[after - 1], poses[j], kept[after - 1].ground_truth, kept[j].ground_truth)
+        assert dt < 0.1 and dr < 1.0, (j, dt, dr)
+
+
+@pytest.mark.parametrize("k, pause", [(400, 2.0), (420, 1.0)])
+def test_a_pause_without_odometry_does_not_trust_a_peak_where_constant_velocity_ran_on(k, pause):
+    """No odometry, and the robot waits a while in a corridor between two scans (``pause`` s more
+    between them): constant velocity carries the prediction a metre or more down the corridor, where
+    the largest real-time window (0.3 m) holds a look-alike peak that scores well. A window that cannot
+    hold the prediction's error proves nothing: the recovery searches around every prediction, and
+    the scans after the pause are placed right."""
+    scans = _bundled_scans(k + 20)
+    for s in scans:
+        s.odom_pose = None
+    for s in scans[k:]:
+        s.timestamp += pause
+    tracker, poses = _run(scans)
+    lin, _ = tracker.windows(tracker.extrapolator.velocity * (0.2 + pause))
+    assert lin > tracker.largest_windows()[0]  # the case at hand: the prediction's error exceeds the window
+    for j in (k, len(scans) - 1):
+        dt, dr = _rel_error(poses[k - 1], poses[j], scans[k - 1].ground_truth, scans[j].ground_truth)
+        assert dt < 0.1 and dr < 1.0, (j, dt, dr)
+
+
+def test_the_recovery_turns_as_far_as_the_robot_can_have_turned_without_odometry():
+    """The recovery's rotation window: the configured one with odometry, or over a short interval;
+    without odometry, the fastest turn measured so far times the time since the last trusted pose,
+    up to the full circle."""
+    tracker = LocalSlam(config_from_dict({}), loop_closure=True)
+    w = tracker.wide_matcher.angular_window
+    ex = tracker.extrapolator
+    assert tracker._recovery_rotation(10.0, odometry=False) == w  # nothing measured yet
+    ex.add(0.0, np.zeros(3), None)
+    ex.add(1.0, np.array([0.0, 0.0, 1.2]), None)  # turned at 1.2 rad/s
+    assert ex.max_turn_rate == pytest.approx(1.2) and ex.measured_time == 1.0
+    ex.add(1.5, np.array([0.0, 0.0, 1.3]), None, measured=False)  # a carried pose measures nothing
+    assert ex.max_turn_rate == pytest.approx(1.2) and ex.measured_time == 1.0
+    assert tracker._recovery_rotation(1.2, odometry=False) == w  # 0.24 rad: within the configured window
+    assert tracker._recovery_rotation(2.0, odometry=False) == pytest.approx(1.2)
+    assert tracker._recovery_rotation(2.0, odometry=True) == w
+    assert tracker._recovery_rotation(9.0, odometry=False) == pytest.approx(math.pi)
+
+
 def test_recovers_from_an_injected_30_degree_heading_error():
     """From scan K on, the odometry turns by 30° more than the robot did (a slipping wheel in a
     fast turn). Wider than the largest real-time window (10°): only the recovery search finds it."""
@@ -439,6 +500,8 @@ def test_a_clear_recovered_peak_replaces_a_prediction_that_found_no_peak():
     assert not tracker._takes_recovered(low, edge, b, 0.7, sub, mg, pts, least=0.55)  # below what the search keeps
     ex.last_pose = b.copy()                           # the robot did not move: 3 m is beyond its error bound
     assert not takes(low)
+    # ... of odometry; a constant-velocity prediction measured nothing: the recovery window bounds it
+    assert tracker._takes_recovered(low, edge, b, 0.7, sub, mg, pts, odometry=False)
     tracker._carried[:] = (5.0, 0.0)                  # ... unless untrusted scans carried the prediction 5 m
     assert takes(low)
 

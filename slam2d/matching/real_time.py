@@ -32,7 +32,7 @@ Cartographer's delta penalty, exp(−(w_t·d + w_r·|Δθ|)²) with w = 0.1, cos
 away 0.02 % of its score; a scanner whose range ends inside a corridor scores the newest stretch
 of the walls on cells no scan has observed yet at its true pose, and on mapped wall slid back
 one step: 0.1 to 0.3 % more, so local SLAM loses travel along such corridors (the frontend
-passes the odometry's σ when ``real_time_matcher.window_sigmas`` is set, off by default: README).
+passes the odometry's σ unless ``real_time_matcher.window_sigmas`` is 0; on by default: README).
 The translation from the prediction is then taken as Gaussian with that σ, and each candidate's
 mean score is multiplied by exp(−d²/(2σ²N)), N the scan's points: the posterior's own weighing
 when the mean score is read as a per-point likelihood of N independent points (the covariance's
