@@ -64,9 +64,9 @@ def _run(scans, cfg=None):
 def test_recovers_a_turn_made_during_a_gap_without_odometry():
     """No odometry, and 3 s of scans lost while the robot turns round in place after driving west at
     0.8 m/s. Constant velocity puts the next scan 2.7 m further west, facing west; the robot faces
-    east where it stood. The prediction's translation error is beyond the largest window, so no peak
-    inside that window is believed, and the recovery turns as far as the fastest turn measured
-    before could have turned it in 3 s (the full circle here): the scans after the gap are placed right."""
+    east where it stood, beyond the configured recovery rotation (45°) of every prediction. The
+    recovery turns as far as the fastest turn measured before could have turned the robot in 3 s
+    (the full circle here): the scans after the gap are placed right."""
     scans = _bundled_scans(760)
     for s in scans:
         s.odom_pose = None
