@@ -411,8 +411,8 @@ class LocalSlam:
             # identical to the last scan's is no measurement of motion either: the robot stood still
             # (``_still`` takes those scans that score best where the last one lay) or the odometry stream
             # stalled while it drove, and a prior that tight would hold the pose where the stream stopped
-            fresh = self.extrapolator.last_odom is None or not np.array_equal(odom, self.extrapolator.last_odom)
-            prior = lin / rt.window_sigmas if rt.window_sigmas > 0 and odom is not None and fresh else 0.0
+            fresh = from_odometry and not np.array_equal(odom, self.extrapolator.last_odom)
+            prior = lin / rt.window_sigmas if rt.window_sigmas > 0 and fresh else 0.0
             m = self.matcher.match(grid, predicted, points, linear_window=lin, angular_window=ang,
                                    largest=(lin_max, ang_max), prior_sigma=prior)
             typical = self._typical_score()
