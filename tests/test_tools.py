@@ -178,6 +178,11 @@ def test_benchmark_runs_every_suite_on_tiny_logs(tmp_path):
     assert sim[0]["slam2d"]["ate"]["trans_m"]["rmse"] < sim[0]["odometry"]["ate"]["trans_m"]["rmse"]
     assert set(sim[0]["slam2d"]["loops_vs_ground_truth"]) >= {"final_graph", "accepted", "recall"}
     assert "| fast | speed 2, turn_rate 2.5 |" in md
+    # beside the ATE, the similarity alignment's scale: a bias along the path the SE(2) ATE hides
+    fast_row = next(line for line in md.splitlines() if line.startswith("| fast |"))
+    a = sim[0]["slam2d"]["ate"]
+    assert f"| {a['scale']:.4f}; {a['sim2_trans_m']['rmse']:.3f} |" in fast_row
+    assert f"; {sim[0]['odometry']['ate']['scale']:.4f} |" in fast_row
     assert list((tmp_path / "cache").glob("simulator-seed0-*/fast-*/fast.mcap"))
     # the generated logs are in the cache, not in the output folder or the repository
     assert list((tmp_path / "cache").glob("make_sparse-seed7-*/corner/corner.clf"))

@@ -179,17 +179,17 @@ def _spread(by_seed: dict | None, health: dict | None = None) -> str:
 def simulated_table(rows) -> str:
     from bench_logs import SIM_VARIANTS
 
-    lines = ["| variant | what differs | scans | wall s | peak RSS MB | ATE RMSE m | odometry ATE RMSE m | loops accepted / final / searched | loop precision vs ground truth, final graph (all accepted) | health |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| variant | what differs | scans | wall s | peak RSS MB | ATE RMSE m | scale (Sim(2)); ATE RMSE after it m | odometry ATE RMSE m; its scale | loops accepted / final / searched | loop precision vs ground truth, final graph (all accepted) | health |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
         n, s = row["dataset"], row["slam2d"]
         what = ", ".join(f"{k} {v:g}" for k, v in SIM_VARIANTS.get(n, {}).items())
         g = s.get("loops_vs_ground_truth")
         prec = f"{_pct(g['final_graph'])} ({_pct(g['accepted'])})" if g else "—"
         odo = row.get("odometry", {}).get("ate")
-        odo_txt = f"{odo['trans_m']['rmse']:.3f}" if odo else "—"
+        odo_txt = "—" if not odo else f"{odo['trans_m']['rmse']:.3f}" + (f"; {odo['scale']:.4f}" if "scale" in odo else "")
         lines.append(f"| {n} | {what} | {s['scans']} | {s['wall_s']:.1f} | {s['peak_rss_mb']:.0f} | "
-                     f"{s['ate']['trans_m']['rmse']:.3f} | {odo_txt} | {loops_txt(s)} | {prec} | {health_txt(s)} |")
+                     f"{s['ate']['trans_m']['rmse']:.3f} | {_scale(s['ate'])} | {odo_txt} | {loops_txt(s)} | {prec} | {health_txt(s)} |")
     return "\n".join(lines)
 
 

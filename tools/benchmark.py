@@ -600,7 +600,9 @@ def main(argv=None) -> int:
         md += ["## Simulated sensors and robots", "",
                "The simulator's world and path with what the real logs do not cover (`tools/bench_logs.py`, "
                "`SIM_VARIANTS`). ATE RMSE after SE(2) alignment and loop precision (0.3 m / 2°) against the "
-               "simulator's ground truth; the odometry's ATE for scale. No targets: these show where the default "
+               "simulator's ground truth; the odometry's ATE for scale. The scale of the best similarity alignment "
+               "(above 1: the map is too small as a whole) shows a bias along the path that the SE(2) ATE mixes "
+               "with everything else; the odometry's is beside its ATE. No targets: these show where the default "
                "config stands on sensors it was not tuned on.", "", simulated_table(by_suite["simulated"]), ""]
     if any("rerun" in row for row in rows):
         md += ["Cost of `--rerun` (same run, recording to an .rrd):", "",
