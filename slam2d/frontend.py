@@ -242,9 +242,10 @@ class LocalSlam:
         return statistics.median(self.recent_scores) if len(self.recent_scores) >= MIN_SCORES_FOR_TRUST else None
 
     def _least_recovered_score(self, limit: float, params: SearchParameters) -> float:
-        """The trust limit under the largest delta penalty of the recovery lattice ``params``: no pose
-        scoring less reaches ``limit`` once the penalty is taken off, and no recovered peak scoring
-        less is taken (``_takes_recovered``)."""
+        """``limit`` (the lowest score a recovered peak is taken at: the trust limit, or below it the
+        score of a real-time search that ended on its rotation window's edge) under the largest delta penalty
+        of the recovery lattice ``params``: no pose scoring less reaches ``limit`` once the penalty
+        is taken off, and no recovered peak scoring less is taken (``_takes_recovered``)."""
         return limit * self.wide_matcher.penalty.smallest_factor(params)
 
     def _recovery_floor(self, limit: float, params: SearchParameters) -> float:
@@ -336,7 +337,9 @@ class LocalSlam:
         ``floor``: the caller takes a recovered match only if the fine search around its peak scores
         ``limit``, and no pose of the recovery lattice scoring below ``_recovery_floor`` (its
         score times the smallest delta penalty) can reach that; nor, where the real-time search
-        found no peak, one scoring below that floor (``_least_recovered_score``). So branch-and-bound may cut every
+        found no peak, one scoring below that floor (``_least_recovered_score``), which is then
+        made from that search's own score on its rotation window's edge where that lies below
+        ``limit`` (``add_scan``). So branch-and-bound may cut every
         subtree whose bound is not above the floor: the best match above it is the same one, and a
         prediction whose best lies below it yields nothing instead of a match the caller would
         reject. (The fine search may step two cells past the window's edge; a match found there was
@@ -440,7 +443,15 @@ class LocalSlam:
                 rotation = self._recovery_rotation(scan.timestamp, from_odometry)
                 if m is not None and limit is not None:
                     params = SearchParameters.make(w.linear_window, rotation, grid.resolution, points)
-                    floor, least = self._recovery_floor(limit, params), self._least_recovered_score(limit, params)
+                    # the lowest score a recovered peak is taken at (``_takes_recovered``): the trust
+                    # limit; where the real-time search ended on its rotation window's edge below it
+                    # (a fast turn whose odometry slipped beyond it), the scores still rise there,
+                    # toward a heading beyond the edge that may score below the limit (a turn shows
+                    # new ground), and that edge's score is the least such a peak can be expected to
+                    # reach
+                    least_taken = m.score if m.score < limit and _on_rotation_edge(m, predicted) else limit
+                    floor = self._recovery_floor(least_taken, params)
+                    least = self._least_recovered_score(least_taken, params)
                 with self.cores.share():
                     wide = self._recover(grid, scan, predicted, points, limit, floor, rotation)
                 timings["recovery"] = (time.perf_counter() - t_rec) * 1e3
@@ -606,6 +617,14 @@ class LocalSlam:
                                "degenerate": self.num_degenerate, "still": self.num_still,
                                "submaps": self.submaps.count, "finished_submaps": len(self.finished_submaps),
                                "score_mean": round(float(s.mean()), 4), "score_p5": round(float(np.percentile(s, 5)), 4)}}
+
+
+def _on_rotation_edge(m, predicted) -> bool:
+    """Whether the real-time match ``m`` around ``predicted`` lies on an edge of its rotation window
+    (its lattice's first or last angle)."""
+    if not m.on_edge or m.params is None:
+        return False
+    return abs(math.remainder(m.pose[2] - predicted[2], 2 * math.pi)) >= float(np.abs(m.params.angles).max()) - 1e-9
 
 
 __all__ = ["LocalSlam", "PoseExtrapolator"]

@@ -327,7 +327,8 @@ def test_recovery_prefers_the_odometry_where_the_scene_repeats(monkeypatch):
 
 
 def test_recovery_floor_changes_no_result(monkeypatch):
-    """The recovery search prunes below the trust limit (less the largest delta penalty): it must
+    """The recovery search prunes below the lowest score it takes (the trust limit, or the score of a
+    real-time search that ended on its rotation window's edge; less the largest delta penalty): it must
     find exactly what the unpruned search finds wherever that can be taken. Whole local runs with
     recoveries (an injected 30° heading error, and a 2 s gap without odometry) give identical
     poses and counts with and without the floor."""
@@ -347,7 +348,10 @@ def test_recovery_floor_changes_no_result(monkeypatch):
     monkeypatch.setattr(LocalSlam, "_recovery_floor",
                         lambda self, limit, params: seen.append(real(self, limit, params)) or 0.0)
     plain, without = _run(scans)
-    assert seen and min(seen) > 0.3  # the floor was live (it prunes), yet nothing changed:
+    # both kinds of floor were live (they prune): the trust limit's, and below it that of a real-time
+    # search that ended on its rotation window's edge (the injected 30° turn), each under the largest
+    # penalty; yet nothing changed:
+    assert seen and min(seen) > 0.1 and max(seen) > 0.3, seen
     np.testing.assert_array_equal(np.array(with_floor), np.array(without))
     assert floored.summary() == plain.summary()
 
@@ -526,6 +530,59 @@ def test_a_turn_beyond_the_rotation_window_is_placed_by_the_recovery():
         dt, dr = _rel_error(results[i - 1].local_pose, results[i].local_pose, scans[i - 1].ground_truth,
                             scans[i].ground_truth)
         assert dt < 0.1 and dr < 1.0, (i, dt, dr)
+
+
+def test_a_fast_turn_onto_new_ground_beyond_the_rotation_window_is_recovered():
+    """As above, but every scan taken in a fast turn (over 15° from the scan before) also shows new
+    ground: four readings in ten replaced by nearer returns off things the submap never saw. At its
+    true pose such a scan scores below the trust limit, even under the recovery's largest delta
+    penalty, while the real-time search, around a prediction off by more than its rotation window,
+    ends on that window's edge with the scores still rising. The recovery must search down to that
+    edge's score: pruning at the trust limit found nothing there, the scans were carried at the
+    prediction, and the next scan's clutter-made peak was mapped at the wrong heading."""
+    import dataclasses
+
+    scans = [s for i, s in enumerate(_bundled_scans(1500)) if i % 3 == 0]
+    odom = [scans[0].odom_pose]
+    for s0, s1 in zip(scans, scans[1:]):
+        d = between(s0.odom_pose, s1.odom_pose)
+        odom.append(compose(odom[-1], np.array([d[0], d[1], 1.4 * d[2]])))
+    rng = np.random.default_rng(0)
+    fast = 0
+    for k, o in enumerate(odom):
+        r = scans[k].ranges.copy()
+        if k and abs(between(scans[k - 1].ground_truth, scans[k].ground_truth)[2]) > math.radians(15.0):
+            fast += 1
+            m = rng.random(len(r)) < 0.4
+            r[m] = np.minimum(r[m], rng.uniform(0.3, 3.0, int(m.sum()))).astype(r.dtype)
+        scans[k] = dataclasses.replace(scans[k], ranges=r, odom_pose=o)
+    assert fast >= 10
+    tracker = LocalSlam(config_from_dict({}), loop_closure=True)
+    results = [tracker.add_scan(s) for s in scans]
+    assert tracker.num_untrusted == 0 and tracker.num_forced == 0
+    for i in range(1, len(scans)):
+        dt, dr = _rel_error(results[i - 1].local_pose, results[i].local_pose, scans[i - 1].ground_truth,
+                            scans[i].ground_truth)
+        assert dt < 0.1 and dr < 1.0, (i, dt, dr, results[i].quality)
+
+
+def test_only_a_match_on_the_rotation_window_s_edge_lowers_the_recovery_s_floor():
+    """``_on_rotation_edge``: a real-time match counts when its heading is the lattice's first or last
+    angle (whatever its translation), not when it lies on the translation window's edge alone, nor
+    when it is no edge match at all; the heading wraps round ±π."""
+    from slam2d.frontend import _on_rotation_edge
+    from slam2d.matching.real_time import MatchResult
+    from slam2d.matching.search import SearchParameters
+
+    pts = np.array([[4.0, 0.0], [0.0, 3.0]])
+    params = SearchParameters.make(0.3, math.radians(10.0), 0.05, pts)
+    top = float(params.angles[-1])
+    predicted = np.array([1.0, 2.0, math.pi - 0.05])
+    for da, dx, edge, expected in ((top, 0.0, True, True), (-top, 0.3, True, True), (top - params.angular_step, 0.3, True, False),
+                                   (0.0, 0.3, True, False), (top, 0.0, False, False)):
+        m = MatchResult(predicted + [dx, 0.0, da], 0.5, 1, params=params, on_edge=edge)
+        assert _on_rotation_edge(m, predicted) == expected, (da, dx, edge)
+    assert not _on_rotation_edge(MatchResult(predicted + [0.0, 0.0, top], 0.5, 1, on_edge=True), predicted)  # no lattice
 
 
 @pytest.mark.parametrize("seed", range(4))

@@ -123,13 +123,19 @@ def test_benchmark_runs_every_suite_on_tiny_logs(tmp_path):
                        capture_output=True, text=True, cwd=ROOT, timeout=900)
     assert r.returncode == 0, r.stderr
     md = (tmp_path / "B.md").read_text()
-    for heading in ("## Relations logs", "## Degraded odometry", "## Dropped beams", "## Without odometry", "## Sparse logs",
+    for heading in ("## Relations logs", "## Degraded odometry", "## Dropped beams", "## Fewer scans", "## Without odometry",
+                    "## Sparse logs",
                     "## fr-clinic", "## Simulated sensors and robots"):
         assert heading in md
     b = json.loads((tmp_path / "b.json").read_text())
     assert [row["dataset"] for row in b["rows"]] == ["tiny"] and [row["dataset"] for row in b["degraded"]] == ["tiny"]
     assert [row["dataset"] for row in b["dropout"]] == ["tiny"] and "relations" in b["dropout"][0]["slam2d"]
     assert (out / "runs" / "dropout-tiny" / "trajectory.txt").exists()
+    # one scan in five: its run against slam2d's run of the whole log, at every scan it keeps
+    th = b["thinned"]
+    assert [row["dataset"] for row in th] == ["tiny"] and th[0]["slam2d"]["scans"] == 20
+    assert th[0]["slam2d"]["vs_full_log"]["matched"] == 20 and "relations_exact" in th[0]["slam2d"]
+    assert list((tmp_path / "cache").glob("degrade-seed1-*/tiny-every5/tiny.clf"))
     # the relations logs (the speed targets) are timed --speed-repeat times, the other suites once
     assert len(b["rows"][0]["slam2d"]["wall_s_runs"]) == 2 and len(b["degraded"][0]["slam2d"]["wall_s_runs"]) == 1
     assert "median wall time and largest peak of 2 runs" in md
@@ -187,6 +193,44 @@ def test_benchmark_runs_every_suite_on_tiny_logs(tmp_path):
     # the generated logs are in the cache, not in the output folder or the repository
     assert list((tmp_path / "cache").glob("make_sparse-seed7-*/corner/corner.clf"))
     assert list((tmp_path / "cache").glob("degrade-seed1-*/tiny/tiny.clf"))
+
+
+def test_thinned_log_runs_are_held_against_the_whole_log_s_run(tmp_path):
+    """``agreement_with``: a run of a thinned log against the run of the whole log, at the stamps both
+    hold, after SE(2) alignment: a thinned run that is the whole run's poses (in another frame)
+    agrees exactly; one turned by 10° after half its scans does not, and the table says so."""
+    sys.path.insert(0, str(ROOT / "tools"))
+    import benchmark
+    from slam2d.geometry import compose
+    from slam2d.io.trajectory import write_tum
+
+    n = 200
+    t = 1000.0 + 0.2 * np.arange(n)
+    a = np.linspace(0.0, 3.0, n)
+    full = np.c_[10.0 * np.cos(a), 6.0 * np.sin(a), a + np.pi / 2]
+    stamps = [f"{x:.6f}" for x in t]
+    write_tum(tmp_path / "full.txt", stamps, full)
+    keep = np.arange(0, n, 5)
+    moved = np.array([compose(np.array([3.0, -1.0, 0.4]), p) for p in full[keep]])
+    write_tum(tmp_path / "thin.txt", [stamps[i] for i in keep], moved)
+    g = benchmark.agreement_with(tmp_path / "thin.txt", tmp_path / "full.txt")
+    assert g["matched"] == len(keep) and g["trans_m"]["rmse"] < 1e-5 and g["rot_deg"]["rmse"] < 1e-4
+    bent, h = moved.copy(), len(keep) // 2
+    turned = compose(moved[h], np.array([0.0, 0.0, np.radians(10.0)]))  # a turn 10° wrong at the middle scan
+    for i in range(h, len(keep)):
+        bent[i] = compose(turned, between(moved[h], moved[i]))
+    write_tum(tmp_path / "bent.txt", [stamps[i] for i in keep], bent)
+    g2 = benchmark.agreement_with(tmp_path / "bent.txt", tmp_path / "full.txt")
+    assert g2["trans_m"]["rmse"] > 0.3 and g2["rot_deg"]["max"] > 4.0
+    write_tum(tmp_path / "none.txt", [f"{t[i] + 0.1:.6f}" for i in keep], moved)  # no stamp in common
+    assert benchmark.agreement_with(tmp_path / "none.txt", tmp_path / "full.txt") is None
+    s = {"scans": len(keep), "wall_s": 2.0, "peak_rss_mb": 300.0, "mode": "global", "vs_full_log": g2,
+         "relations_exact": {"counts": {"exact": 3}, "abs_trans_m": {"mean": 0.05, "std": 0.01},
+                             "abs_rot_deg": {"mean": 0.5, "std": 0.1}},
+         "loop_closure": {"accepted": 5, "in_final_graph": 4, "candidates_searched": 9}, "health": {"status": "OK"}}
+    line = benchmark.thinned_table([{"dataset": "fr079", "slam2d": s}]).splitlines()[2]
+    assert (f"| {g2['trans_m']['rmse']:.3f} / {g2['trans_m']['max']:.3f} | {g2['rot_deg']['rmse']:.2f} | "
+            "3; 0.0500 ± 0.0100; 0.500 | 5 / 4 / 9 | OK |") in line
 
 
 def test_benchmark_tables_show_health_and_targets():

@@ -50,14 +50,21 @@ def _tool(cmd: list) -> None:
 BEAM_DROPOUT = 0.3
 
 
-def degraded_log(args, name: str, beam_dropout: float = 0.0) -> Path:
+#: ``degrade.py --keep-every``: the thinned copies keep one scan in this many
+KEEP_EVERY = 5
+
+
+def degraded_log(args, name: str, beam_dropout: float = 0.0, keep_every: int = 1) -> Path:
     """``degrade.py IN OUT --seed 1`` (its default odometry model) of a relations log, cached; with
     ``beam_dropout``, also that share of readings replaced by the log's no-return value
-    (``--beam-dropout``), in a folder of its own."""
+    (``--beam-dropout``), with ``keep_every``, only every that many-th scan kept (``--keep-every``),
+    each in a folder of its own."""
     tool = args.shared / "tools" / "degrade.py"
     log = args.shared / "datasets" / name / f"{name}.clf.bz2"
     extra = ["--beam-dropout", beam_dropout] if beam_dropout else []
-    folder = f"{name}-dropout{round(beam_dropout * 100)}" if beam_dropout else name
+    extra += ["--keep-every", keep_every] if keep_every > 1 else []
+    folder = name + (f"-dropout{round(beam_dropout * 100)}" if beam_dropout else "") + (
+        f"-every{keep_every}" if keep_every > 1 else "")
     d = cached(args.cache, tool, args.degrade_seed, folder, log,
                lambda tmp: _tool([tool, log, tmp / f"{name}.clf", "--seed", args.degrade_seed, *extra]))
     return d / f"{name}.clf"
@@ -67,6 +74,12 @@ def dropout_log(args, name: str) -> Path:
     """The degraded copy with ``BEAM_DROPOUT`` of the readings dropped as well (dark, glossy and glass
     surfaces that return no echo)."""
     return degraded_log(args, name, BEAM_DROPOUT)
+
+
+def thinned_log(args, name: str) -> Path:
+    """The degraded copy with only every ``KEEP_EVERY``-th scan kept: a robot logging its scans at a
+    fifth of the rate, so that a fast turn is tens of degrees between scans."""
+    return degraded_log(args, name, keep_every=KEEP_EVERY)
 
 
 def corrected_logs(datasets: Path) -> list[tuple[str, Path]]:

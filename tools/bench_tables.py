@@ -96,6 +96,38 @@ def degraded_table(rows, kind: str = "degraded") -> str:
     return "\n".join(lines)
 
 
+def _vs_full(a) -> str:
+    """'0.026 / 0.077 | 0.34': a thinned log's run against slam2d's run of the whole log (ATE RMSE /
+    max m | rotation RMSE °)."""
+    if not a:
+        return "— | —"
+    return f"{a['trans_m']['rmse']:.3f} / {a['trans_m']['max']:.3f} | {a['rot_deg']['rmse']:.2f}"
+
+
+def _rel_exact(m) -> str:
+    """'56; 0.0482 ± 0.0312; 0.594': how many relations were scored and their mean errors (m; °)."""
+    if not m:
+        return "—"
+    n = (m.get("counts") or {}).get("exact", 0)
+    if not n:
+        return "0"
+    return f"{n}; {fmt((m['abs_trans_m']['mean'], m['abs_trans_m']['std']))}; {m['abs_rot_deg']['mean']:.3f}"
+
+
+def thinned_table(rows) -> str:
+    lines = ["| dataset (thinned) | system | scans | wall s | peak RSS MB | vs slam2d's run of the whole log: ATE RMSE / max m | its rot RMSE ° | relations at kept stamps: n; trans abs m (mean ± std); rot abs ° (mean) | loops accepted / final / searched | health |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for row in rows:
+        n, s = row["dataset"], row["slam2d"]
+        lines.append(f"| {n} | slam2d ({s['mode']}) | {s['scans']} | {s['wall_s']:.1f} | {s['peak_rss_mb']:.0f} | "
+                     f"{_vs_full(s.get('vs_full_log'))} | {_rel_exact(s.get('relations_exact'))} | {loops_txt(s)} | {health_txt(s)} |")
+        k = row.get("karto", {})
+        if "trajectory" in k:
+            lines.append(f"| {n} | Karto peer (sequential) | {s['scans']} | {k['wall_s']:.1f} | {k['peak_rss_mb']:.0f} | "
+                         f"{_vs_full(k.get('vs_full_log'))} | {_rel_exact(k.get('relations_exact'))} | — | |")
+    return "\n".join(lines)
+
+
 def sparse_table(rows) -> str:
     target = TARGETS["sparse_ate_rmse_m"]
     lines = [f"| dataset (sparse) | system | scans | wall s | peak RSS MB | ATE RMSE m | target ≤ {target} m | met | scale (Sim(2)); ATE RMSE after it m | ATE RMSE over the seeds: median (min–max) m; seeds whose health is not OK | loops accepted / final / searched | loop precision vs ground truth, final graph (all accepted; the other seeds' final graphs) | its misses, by the raw scans: loop right / truth right / undecided | loop precision vs slam2d's run of the raw log, final graph (the other seeds') | recall (revisit episodes closed) | free-space violation, all scans / revisits: slam2d; ground truth; disputed scans | health |",

@@ -12,6 +12,10 @@ Suites (issue 11), all in one run by default, `--suite` selects some:
              its defaults), scored on the original `.relations`;
   dropout    the degraded logs with three readings in ten turned into no-returns as well
              (`degrade.py ... --beam-dropout 0.3`: dark, glossy and glass surfaces), relations;
+  thinned    the degraded logs with one scan in five kept (`degrade.py ... --keep-every 5`: a fifth
+             of the scan rate, tens of degrees between the scans of a fast turn); their agreement
+             with slam2d's run of the whole raw log (the relations suite's), and the relations whose
+             two stamps are both scans of the thinned log;
   no-odometry  the same logs run with `slam2d run --no-odometry` (odometry is optional), relations;
   sparse     `../shared/tools/make_sparse.py OUTDIR LOG --seed 7` of every corrected log found in
              ../shared/datasets (`*.gfs.log`, `*-corrected.log*`, any depth); ATE RMSE and loop
@@ -56,13 +60,14 @@ sys.path.insert(0, str(ROOT))
 
 sys.path.insert(0, str(ROOT / "tools"))
 
-from bench_logs import (BEAM_DROPOUT, SIM_VARIANTS, corrected_logs, default_cache, degraded_log, dropout_log,  # noqa: E402
-                        sim_log, sparse_log)
-from bench_tables import TARGETS, clinic_table, degraded_table, simulated_table, sparse_table, table  # noqa: E402
+from bench_logs import (BEAM_DROPOUT, KEEP_EVERY, SIM_VARIANTS, corrected_logs, default_cache, degraded_log,  # noqa: E402
+                        dropout_log, sim_log, sparse_log, thinned_log)
+from bench_tables import (TARGETS, clinic_table, degraded_table, simulated_table, sparse_table, table,  # noqa: E402
+                          thinned_table)
 
 SHARED = ROOT.parent / "shared"
 REFERENCE_LOGS = {"intel": "intel.gfs.log", "aces": "aces-corrected.log.gz", "fr079": "freiburg-079-corrected.log.gz"}
-SUITES = ("relations", "degraded", "dropout", "no-odometry", "sparse", "clinic", "simulated")
+SUITES = ("relations", "degraded", "dropout", "thinned", "no-odometry", "sparse", "clinic", "simulated")
 LOOP_TOLERANCE = (0.3, 2.0)  # m, deg: slam2d eval loops --ground-truth defaults
 
 
@@ -113,12 +118,32 @@ def timed(cmd: list[str]) -> dict:
             "stdout": out, "stderr": err}
 
 
-def relations_of(traj: Path, rel: Path) -> dict:
+def relations_of(traj: Path, rel: Path, exact: bool = False) -> dict:
     from slam2d.eval.relations import read_relations, relations_metric
     from slam2d.io.trajectory import read_tum
 
     t, poses, _ = read_tum(traj)
-    return relations_metric(t, poses, read_relations(rel))
+    return relations_metric(t, poses, read_relations(rel), exact=exact)
+
+
+def agreement_with(traj: Path, full: Path) -> dict | None:
+    """ATE (slam2d.eval.ate) of a TUM trajectory against another one at the stamps both hold: a run of
+    a thinned log against slam2d's run of the whole log (whose scans it keeps, stamps unchanged).
+    None without a common stamp."""
+    import numpy as np
+
+    from slam2d.eval.ate import ate
+    from slam2d.io.trajectory import read_tum
+
+    t, poses, _ = read_tum(traj)
+    tf, full_poses, _ = read_tum(full)
+    j = np.clip(np.searchsorted(tf, t), 0, len(tf) - 1)
+    same = np.abs(tf[j] - t) < 1e-6
+    if not same.any():
+        return None
+    out = ate(poses[same], full_poses[j[same]])
+    out["matched"] = int(same.sum())
+    return out
 
 
 def _median_run(runs: list[dict]) -> dict:
@@ -291,6 +316,30 @@ def bench_degraded(name: str, log: Path, args, outdir: Path, kind: str = "degrad
     if "trajectory" in row.get("karto", {}):
         row["karto"]["relations"] = relations_of(Path(row["karto"]["trajectory"]), rel)
     return row
+
+
+def bench_thinned(name: str, log: Path, args, outdir: Path) -> dict:
+    """A thinned degraded log: the relations whose two stamps are both scans of it (interpolating
+    across the dropped scans would measure the interpolation); its agreement with slam2d's run of
+    the whole log is added once every run is done (``thinned_agreement``)."""
+    rel = args.shared / "datasets" / name / f"{name}.relations"
+    row = run_log(f"thinned-{name}", log, args, outdir)
+    row["dataset"] = name
+    row["slam2d"]["relations_exact"] = relations_of(outdir / f"thinned-{name}" / "trajectory.txt", rel, exact=True)
+    if "trajectory" in row.get("karto", {}):
+        row["karto"]["relations_exact"] = relations_of(Path(row["karto"]["trajectory"]), rel, exact=True)
+    return row
+
+
+def thinned_agreement(row: dict, runs: Path) -> None:
+    """The thinned log's runs (slam2d's, the peer's) against slam2d's run of the whole raw log in this
+    benchmark (``runs/NAME``), where there is one."""
+    full = runs / row["dataset"] / "trajectory.txt"
+    if not full.exists():
+        return
+    row["slam2d"]["vs_full_log"] = agreement_with(runs / f"thinned-{row['dataset']}" / "trajectory.txt", full)
+    if "trajectory" in row.get("karto", {}):
+        row["karto"]["vs_full_log"] = agreement_with(Path(row["karto"]["trajectory"]), full)
 
 
 def bench_no_odometry(name: str, args, outdir: Path) -> dict:
@@ -481,6 +530,10 @@ def main(argv=None) -> int:
         for n in relation_names:
             log = dropout_log(args, n)
             jobs.append(("dropout", log, lambda n=n, log=log: bench_degraded(n, log, args, runs, "dropout")))
+    if "thinned" in suites:
+        for n in relation_names:
+            log = thinned_log(args, n)
+            jobs.append(("thinned", log, lambda n=n, log=log: bench_thinned(n, log, args, runs)))
     if "no-odometry" in suites:
         jobs += [("no-odometry", datasets / n / f"{n}.clf.bz2", lambda n=n: bench_no_odometry(n, args, runs))
                  for n in relation_names]
@@ -506,6 +559,8 @@ def main(argv=None) -> int:
     by_suite = {s: [row for k, row in done if k == s] for s in SUITES}
     for row in by_suite["sparse"]:
         loops_vs_dense_run(row, datasets, runs)
+    for row in by_suite["thinned"]:
+        thinned_agreement(row, runs)
     rows = by_suite["relations"]
     for row in rows:
         for p in row.get("plots", []):
@@ -519,7 +574,7 @@ def main(argv=None) -> int:
             "cache": str(args.cache),
             "targets": TARGETS}
     Path(args.json).write_text(json.dumps({"meta": meta, "rows": rows, "degraded": by_suite["degraded"],
-                                           "dropout": by_suite["dropout"],
+                                           "dropout": by_suite["dropout"], "thinned": by_suite["thinned"],
                                            "no_odometry": by_suite["no-odometry"], "sparse": by_suite["sparse"], "clinic": by_suite["clinic"],
                                            "simulated": by_suite["simulated"]},
                                           indent=2, default=float) + "\n")
@@ -560,6 +615,15 @@ def main(argv=None) -> int:
                "as dark, glossy and glass surfaces give no echo. Scored on the original `.relations`; the target is "
                "Cartographer's published figure for the clean log.", "",
                degraded_table(by_suite["dropout"], "dropped beams"), ""]
+    if "thinned" in suites:
+        md += ["## Fewer scans", "",
+               f"`degrade.py IN OUT --seed {args.degrade_seed} --keep-every {KEEP_EVERY}` of each relations log: the "
+               f"degraded odometry, and one scan in {KEEP_EVERY} kept, as a robot logging at a fifth of the rate (a fast "
+               "turn is then tens of degrees between scans). Each run against slam2d's run of the whole raw log above "
+               "(its scans keep their stamps; ATE after SE(2) alignment over the scans the thinned log keeps), and the "
+               "relations metric over the relations whose two stamps are both scans of the thinned log (few: "
+               "interpolating across the dropped scans would measure the interpolation, not the SLAM).", "",
+               thinned_table(by_suite["thinned"]), ""]
     if "no-odometry" in suites:
         md += ["## Without odometry", "",
                "The relations logs run with `--no-odometry` (the log's wheel odometry ignored; each scan predicted "
