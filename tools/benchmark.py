@@ -127,22 +127,16 @@ def relations_of(traj: Path, rel: Path, exact: bool = False) -> dict:
 
 
 def agreement_with(traj: Path, full: Path) -> dict | None:
-    """ATE (slam2d.eval.ate) of a TUM trajectory against another one at the stamps both hold: a run of
-    a thinned log against slam2d's run of the whole log (whose scans it keeps, stamps unchanged).
+    """``ate_vs_ground_truth`` of a run of a thinned log against slam2d's run of the whole log (whose
+    scans it keeps, stamps unchanged: matched by timestamp), with ``matched`` the scans compared.
     None without a common stamp."""
-    import numpy as np
+    from slam2d.errors import InputError
 
-    from slam2d.eval.ate import ate
-    from slam2d.io.trajectory import read_tum
-
-    t, poses, _ = read_tum(traj)
-    tf, full_poses, _ = read_tum(full)
-    j = np.clip(np.searchsorted(tf, t), 0, len(tf) - 1)
-    same = np.abs(tf[j] - t) < 1e-6
-    if not same.any():
+    try:
+        out = ate_vs_ground_truth(traj, full)
+    except InputError:
         return None
-    out = ate(poses[same], full_poses[j[same]])
-    out["matched"] = int(same.sum())
+    out["matched"] = out["pairs"]
     return out
 
 
