@@ -196,6 +196,7 @@ class LocalSlam:
                                                             rt.rotation_delta_cost_weight)
         self._vain_search_at = None  # where a recovery for a low-scoring peak found nothing (``_searched_in_vain``)
         self.num_recovery_skipped = 0
+        self.num_unsupported_jumps = 0
         self.untrusted_in_a_row = 0
         self._doubt = np.zeros(2)  # MatchingResult.doubt, gathered until the next insertion
         self._carried = np.zeros(2)  # distance, |rotation| of the motion since the last pose that was not carried from a prediction
@@ -266,18 +267,47 @@ class LocalSlam:
         common = observed_scores(submap.grid, grid, [pose, other], points)
         return common is not None and common[0] > common[1]
 
+    def _unsupported_jump(self, wide, m, predicted, odometry: bool) -> bool:
+        """Whether the recovered match ``wide``, which ``_takes_recovered`` would take over ``m``, is a
+        jump the evidence does not carry: ``m`` is a peak inside the real-time window, ``wide`` lies
+        farther than the wheel odometry's own translation error bound (``_error_bound``) both from
+        the prediction and from ``m`` (another place, not the same one placed better), and it scores
+        below the lower quartile of the recent trusted matches. Two
+        explanations of the scan conflict there: the odometry failed beyond its error model, or the
+        recovered place only looks like the right one (a door further along a corridor, a room like
+        the last one) and outscores the right pose, which sees new ground. The trust limit is set
+        for poses the odometry supports; a place it rules out stands on the scan alone and must fit
+        it as well as three in four trusted matches do. Short of that, neither is taken: the scan
+        carries the prediction and stays out of the submaps (``add_scan``), and the next scan,
+        searched again, decides. A heading beyond the bound at the predicted place is no such
+        conflict: look-alike places lie elsewhere, and a wheel slipping in a fast turn is the
+        failure the recovery is for. Without odometry (no error bound) or before
+        ``MIN_SCORES_FOR_TRUST`` trusted matches, never."""
+        if m is None or m.on_edge or not odometry:
+            return False
+        bound = self._error_bound(predicted)[0]
+        if min(math.hypot(*(wide.pose[:2] - predicted[:2])), math.hypot(*(wide.pose[:2] - m.pose[:2]))) <= bound:
+            return False
+        if len(self.recent_scores) < MIN_SCORES_FOR_TRUST:
+            return False
+        return wide.score < float(np.percentile(np.asarray(self.recent_scores), 25.0))
+
     def _plausible_jump(self, pose, predicted) -> bool:
         """Whether ``pose`` lies within the prediction's own error bound: the real-time windows of the
         motion since the last pose that was not carried from a prediction (``windows``, without the
         largest windows' cap, which bounds the search, not the error), i.e. grown by this scan's
         motion and by that of every untrusted scan before it, whose pose was the prediction."""
+        lin, ang = self._error_bound(predicted)
+        return (math.hypot(pose[0] - predicted[0], pose[1] - predicted[1]) <= lin
+                and abs(math.remainder(pose[2] - predicted[2], 2 * math.pi)) <= ang)
+
+    def _error_bound(self, predicted) -> tuple[float, float]:
+        """The prediction's error bound (m, rad) of ``_plausible_jump``."""
         motion = self.extrapolator.motion(predicted)
         d = self._carried[0] + math.hypot(motion[0], motion[1])
         r = self._carried[1] + abs(math.remainder(motion[2], 2 * math.pi))
         lin, ang = self.windows(np.array([d, 0.0, r]))
-        lin += self.cfg.grid.resolution  # the searches place poses on a lattice of cells
-        return (math.hypot(pose[0] - predicted[0], pose[1] - predicted[1]) <= lin
-                and abs(math.remainder(pose[2] - predicted[2], 2 * math.pi)) <= ang)
+        return lin + self.cfg.grid.resolution, ang  # the searches place poses on a lattice of cells
 
     def _takes_recovered(self, wide, m, predicted, limit, submap, grid, points, least: float = 0.0,
                          odometry: bool = True) -> bool:
@@ -458,10 +488,15 @@ class LocalSlam:
                 self.num_recovery_searches += 1
                 if self._takes_recovered(wide, m, predicted, limit, submap, grid, points, least,
                                          odometry=from_odometry):
-                    # had the recovery chosen wrong, the pose it replaced was the right one
-                    recovered = predicted if m is None else m.pose
-                    m = wide
-                    self.num_recovered += 1
+                    if self._unsupported_jump(wide, m, predicted, from_odometry):
+                        # two explanations, neither decided: untrusted (the prediction, not inserted)
+                        m.on_edge = True
+                        self.num_unsupported_jumps += 1
+                    else:
+                        # had the recovery chosen wrong, the pose it replaced was the right one
+                        recovered = predicted if m is None else m.pose
+                        m = wide
+                        self.num_recovered += 1
                 elif low:
                     self._vain_search_at = predicted
             t2 = time.perf_counter()
@@ -613,6 +648,7 @@ class LocalSlam:
                                "wide_searches": self.num_escalated,
                                "recovery_searches": self.num_recovery_searches, "recovered": self.num_recovered,
                                "recovery_skipped": self.num_recovery_skipped,
+                               "unsupported_jumps": self.num_unsupported_jumps,
                                "untrusted": self.num_untrusted, "inserted_untrusted": self.num_forced, "weak": self.num_weak,
                                "degenerate": self.num_degenerate, "still": self.num_still,
                                "submaps": self.submaps.count, "finished_submaps": len(self.finished_submaps),

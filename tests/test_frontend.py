@@ -468,10 +468,105 @@ def test_a_recovered_pose_must_win_under_the_prediction_s_penalty(monkeypatch):
     assert 0.71 * pen.factor(predicted + far, predicted) < 0.70    # the penalty there outweighs the gain
     assert not takes(far, 0.71)                                      # a door further on: kept in place
     assert takes(far, 0.80)                                          # the odometry failed: recovered
+    # (beyond the odometry's error bound the jump must also reach the recent trusted matches' lower
+    # quartile: ``_unsupported_jump``, tested below)
     assert takes([0.1, 0.0, 0.02], 0.71)                             # a small gain near the prediction
     assert not takes([0.1, 0.0, 0.02], 0.701, limit=0.75)            # never below the trust limit
     assert tracker._takes_recovered(MatchResult(predicted, 0.1, 1), None, predicted, 0.705, None, None, None)
     assert not tracker._takes_recovered(None, m, predicted, 0.705, None, None, None)
+
+
+def _recent(tracker, scores):
+    tracker.recent_scores.clear()
+    tracker.recent_scores.extend(scores)
+
+
+def test_a_jump_beyond_the_odometry_s_error_bound_must_fit_as_well_as_most_trusted_matches():
+    """A recovered match that the trust limit lets replace a peak inside the real-time window, but
+    that lies farther than the wheel odometry's own translation error bound from the prediction and
+    from that peak (another place), must score at least
+    the lower quartile of the recent trusted matches: otherwise it is a jump the evidence does not
+    carry (the odometry failed, or the recovered place only looks like the right one) and neither
+    pose is taken. A heading beyond the bound at the predicted place (a wheel slipping in a turn)
+    is no such jump."""
+    from slam2d.frontend import MIN_SCORES_FOR_TRUST
+    from slam2d.matching.real_time import MatchResult
+
+    tracker = LocalSlam(config_from_dict({}), loop_closure=True)
+    predicted = np.array([4.0, -2.0, 0.3])
+    tracker.extrapolator.last_pose = predicted - [1.0, 0.0, 0.0]  # 1 m driven since the last pose
+    lin, ang = tracker.windows(np.array([1.0, 0.0, 0.0]))
+    bound = lin + tracker.cfg.grid.resolution                       # the error bound of that motion
+    assert tracker._error_bound(predicted) == (bound, ang)
+    scores = [0.80] * 10 + [0.90] * 30 + [0.95] * 10
+    _recent(tracker, scores)
+    # the plain reference: the lower quartile by linear interpolation between order statistics
+    ranked = sorted(scores)
+    pos = 0.25 * (len(ranked) - 1)
+    quartile = ranked[int(pos)] + (pos - int(pos)) * (ranked[int(pos) + 1] - ranked[int(pos)])
+    assert quartile == 0.90
+    peak = MatchResult(predicted + [0.05, 0.0, 0.0], 0.70, 1)     # a low peak inside the window
+    far = predicted + [bound + 0.5, 0.0, 0.0]
+    turned = predicted + [0.0, 0.0, ang + 0.1]
+    near = predicted + [0.5 * bound, 0.0, 0.0]
+
+    def unsupported(pose, score, m=peak, odometry=True):
+        return tracker._unsupported_jump(MatchResult(pose, score, 1), m, predicted, odometry)
+
+    assert not tracker._plausible_jump(turned, predicted)            # the heading is beyond the bound ...
+    assert unsupported(far, 0.85)                                    # trusted (limit 0.72), but below 0.90
+    assert unsupported(far + [0.0, 0.0, ang + 0.1], 0.85)            # ... wherever it turns
+    assert not unsupported(far, 0.90)                                # as good as most: the odometry failed
+    assert not unsupported(near, 0.85)                               # within the bound: the usual rules decide
+    assert not unsupported(turned, 0.85)                             # ... and a turn at the predicted place
+    beside = MatchResult(far - [0.5 * bound, 0.0, 0.0], 0.70, 1)      # an in-window peak near the recovered pose:
+    assert not unsupported(far, 0.85, m=beside)                      # the same place, placed better
+    assert not unsupported(far, 0.85, m=None)                        # no in-window match to weigh it against
+    assert not unsupported(far, 0.85, m=MatchResult(peak.pose, 0.7, 1, on_edge=True))  # nor a peak there
+    assert not unsupported(far, 0.85, odometry=False)                # constant velocity has no error bound
+    _recent(tracker, scores[: MIN_SCORES_FOR_TRUST - 1])
+    assert not unsupported(far, 0.5)                                 # too few trusted matches to judge by
+
+
+@pytest.mark.parametrize("taken", [False, True])
+def test_an_unsupported_jump_carries_the_prediction_and_stays_out_of_the_submaps(monkeypatch, taken):
+    """In a whole local run: the real-time window's peak scores below the trust limit, and the recovery
+    returns a pose 2 m off the odometry's prediction that the trust limit would take. Scoring below the
+    lower quartile of recent trusted matches, the scan is untrusted: its pose is the prediction and
+    it is not inserted; scoring above it, the recovered pose replaces the prediction."""
+    from slam2d.matching.real_time import MatchResult
+
+    scans = _bundled_scans(61)
+    tracker, _ = _run(scans[:60])
+    assert len(tracker.recent_scores) >= 10 and tracker.num_recovered == 0
+    quartile = float(np.percentile(np.asarray(tracker.recent_scores), 25.0))
+    limit = tracker.cfg.real_time_matcher.min_relative_score * tracker._typical_score()
+    assert limit < quartile < 1.0
+    score = 0.5 * (quartile + 1.0) if taken else 0.5 * (limit + quartile)  # above / below the quartile
+    seen = {}
+
+    def low_peak(grid, predicted, points, **kw):
+        seen["predicted"] = np.array(predicted)
+        return MatchResult(np.array(predicted) + [0.05, 0.0, 0.0], 0.8 * limit, 1)
+
+    def look_alike(grid, scan, predicted, points, limit, floor=0.0, angular_window=None):
+        return MatchResult(np.array(predicted) + [2.0, 0.0, 0.0], score, 1)
+
+    monkeypatch.setattr(tracker.matcher, "match", low_peak)
+    monkeypatch.setattr(tracker, "_recover", look_alike)
+    monkeypatch.setattr(LocalSlam, "_better_where_observed", staticmethod(lambda *a: True))
+    inserted = tracker.num_inserted
+    res = tracker.add_scan(scans[60])
+    assert tracker.num_recovery_searches == 1
+    if taken:
+        assert tracker.num_recovered == 1 and tracker.num_unsupported_jumps == 0
+        assert res.quality == "trusted" and res.replaced is not None
+        assert math.hypot(*(res.local_pose[:2] - seen["predicted"][:2])) > 1.0
+    else:
+        assert tracker.num_recovered == 0 and tracker.num_unsupported_jumps == 1
+        assert res.quality == "untrusted" and not res.inserted and tracker.num_inserted == inserted
+        np.testing.assert_allclose(res.local_pose, seen["predicted"])
+        assert tracker.summary()["local_slam"]["unsupported_jumps"] == 1
 
 
 def test_a_clear_recovered_peak_replaces_a_prediction_that_found_no_peak():
