@@ -272,17 +272,17 @@ class LocalSlam:
         jump the evidence does not carry: ``m`` is a peak inside the real-time window, ``wide`` lies
         farther than the wheel odometry's own translation error bound (``_error_bound``) both from
         the prediction and from ``m`` (another place, not the same one placed better), and it scores
-        below the lower quartile of the recent trusted matches. Two
-        explanations of the scan conflict there: the odometry failed beyond its error model, or the
-        recovered place only looks like the right one (a door further along a corridor, a room like
-        the last one) and outscores the right pose, which sees new ground. The trust limit is set
-        for poses the odometry supports; a place it rules out stands on the scan alone and must fit
-        it as well as three in four trusted matches do. Short of that, neither is taken: the scan
-        carries the prediction and stays out of the submaps (``add_scan``), and the next scan,
-        searched again, decides. A heading beyond the bound at the predicted place is no such
-        conflict: look-alike places lie elsewhere, and a wheel slipping in a fast turn is the
-        failure the recovery is for. Without odometry (no error bound) or before
-        ``MIN_SCORES_FOR_TRUST`` trusted matches, never."""
+        below the lower quartile of the recent trusted matches. Two explanations of the scan
+        conflict there: the odometry failed beyond its error model, or the recovered place only
+        looks like the right one (a door further along a corridor, a room like the last one) and
+        outscores the right pose, which sees new ground. The trust limit is set for poses the
+        odometry supports; a place it rules out stands on the scan alone and must fit it as well as
+        three in four trusted matches do. Short of that, neither is taken: the scan carries the
+        prediction and stays out of the submaps (``add_scan``), and the next scan, searched again,
+        decides. A heading beyond the bound at the predicted place is no such conflict: look-alike
+        places lie elsewhere, and a wheel slipping in a fast turn is the failure the recovery is
+        for. Without odometry (no error bound) or before ``MIN_SCORES_FOR_TRUST`` trusted matches,
+        never."""
         if m is None or m.on_edge or not odometry:
             return False
         bound = self._error_bound(predicted)[0]

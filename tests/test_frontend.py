@@ -484,11 +484,10 @@ def _recent(tracker, scores):
 def test_a_jump_beyond_the_odometry_s_error_bound_must_fit_as_well_as_most_trusted_matches():
     """A recovered match that the trust limit lets replace a peak inside the real-time window, but
     that lies farther than the wheel odometry's own translation error bound from the prediction and
-    from that peak (another place), must score at least
-    the lower quartile of the recent trusted matches: otherwise it is a jump the evidence does not
-    carry (the odometry failed, or the recovered place only looks like the right one) and neither
-    pose is taken. A heading beyond the bound at the predicted place (a wheel slipping in a turn)
-    is no such jump."""
+    from that peak (another place), must score at least the lower quartile of the recent trusted
+    matches: otherwise it is a jump the evidence does not carry (the odometry failed, or the
+    recovered place only looks like the right one) and neither pose is taken. A heading beyond the
+    bound at the predicted place (a wheel slipping in a turn) is no such jump."""
     from slam2d.frontend import MIN_SCORES_FOR_TRUST
     from slam2d.matching.real_time import MatchResult
 
