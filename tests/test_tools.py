@@ -134,7 +134,7 @@ def test_benchmark_runs_every_suite_on_tiny_logs(tmp_path):
     # one scan in five: its run against slam2d's run of the whole log, at every scan it keeps
     th = b["thinned"]
     assert [row["dataset"] for row in th] == ["tiny"] and th[0]["slam2d"]["scans"] == 20
-    assert th[0]["slam2d"]["vs_full_log"]["matched"] == 20 and "relations_exact" in th[0]["slam2d"]
+    assert th[0]["slam2d"]["vs_full_log"]["pairs"] == 20 and "relations_exact" in th[0]["slam2d"]
     assert list((tmp_path / "cache").glob("degrade-seed1-*/tiny-every5/tiny.clf"))
     # the relations logs (the speed targets) are timed --speed-repeat times, the other suites once
     assert len(b["rows"][0]["slam2d"]["wall_s_runs"]) == 2 and len(b["degraded"][0]["slam2d"]["wall_s_runs"]) == 1
@@ -214,7 +214,7 @@ def test_thinned_log_runs_are_held_against_the_whole_log_s_run(tmp_path):
     moved = np.array([compose(np.array([3.0, -1.0, 0.4]), p) for p in full[keep]])
     write_tum(tmp_path / "thin.txt", [stamps[i] for i in keep], moved)
     g = benchmark.agreement_with(tmp_path / "thin.txt", tmp_path / "full.txt")
-    assert g["matched"] == len(keep) and g["trans_m"]["rmse"] < 1e-5 and g["rot_deg"]["rmse"] < 1e-4
+    assert g["pairs"] == len(keep) and g["trans_m"]["rmse"] < 1e-5 and g["rot_deg"]["rmse"] < 1e-4
     bent, h = moved.copy(), len(keep) // 2
     turned = compose(moved[h], np.array([0.0, 0.0, np.radians(10.0)]))  # a turn 10° wrong at the middle scan
     for i in range(h, len(keep)):

@@ -128,16 +128,14 @@ def relations_of(traj: Path, rel: Path, exact: bool = False) -> dict:
 
 def agreement_with(traj: Path, full: Path) -> dict | None:
     """``ate_vs_ground_truth`` of a run of a thinned log against slam2d's run of the whole log (whose
-    scans it keeps, stamps unchanged: matched by timestamp), with ``matched`` the scans compared.
-    None without a common stamp."""
+    scans it keeps, stamps unchanged: matched by timestamp; ``pairs`` the scans compared). None
+    without a common stamp."""
     from slam2d.errors import InputError
 
     try:
-        out = ate_vs_ground_truth(traj, full)
+        return ate_vs_ground_truth(traj, full)
     except InputError:
         return None
-    out["matched"] = out["pairs"]
-    return out
 
 
 def _median_run(runs: list[dict]) -> dict:
