@@ -38,6 +38,7 @@ from slam2d.geometry import between, compose
 from slam2d.grid.map_builder import build_map
 from slam2d.grid.probability_grid import ProbabilityGrid
 from slam2d.observer import Observer
+from slam2d.threads import CallerCores
 from slam2d.types import Estimate, Node, Scan
 
 MODES = ("global", "local", "odometry")
@@ -159,6 +160,11 @@ class Slam:
                 self._background = Background()
                 # local SLAM's parallel kernels leave the second core to the worker while it works
                 self.tracker.cores.busy = lambda b=self._background: not b.idle()
+                # and the worker's searches take both once the caller waits for them (``finish``)
+                import numba
+
+                self.global_slam.cores = CallerCores(lambda b=self._background: not b.caller_waits(),
+                                                     most=numba.get_num_threads())
         self._stamps: list[str] = []
         # per scan, in flat arrays of float64 (a list holds a Python object per entry, several times the memory)
         self._times = array("d")

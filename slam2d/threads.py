@@ -28,25 +28,32 @@ def in_threads(fn, n: int) -> None:
 
 
 class CallerCores:
-    """The numba threads a caller's parallel kernels may use at this moment: all of them, or one
-    while ``busy()`` says another thread of the process is working (global SLAM's worker has the
-    second core then, and a parallel kernel would wait at its barrier for a thread the OS has
-    descheduled). Asked right before each such kernel, not once per scan: the worker often
-    finishes a node while local SLAM matches the next scan. Kernels give the same results on
-    any number of threads, so this changes timings only."""
+    """The numba threads a thread's parallel kernels may use at this moment: one while ``busy()`` says
+    another thread of the process is working (it has the second core then, and a parallel kernel
+    would wait at its barrier for a thread the OS has descheduled), otherwise ``most`` (None: the
+    thread's own count). Asked right before each such kernel, not once per scan or per queued call:
+    local SLAM's caller shares with global SLAM's worker, which often finishes a node while the
+    next scan is matched, and the worker's long calls (a wide loop search) share with the caller
+    until it stops to wait for them. Kernels give the same results on any number of threads, so
+    this changes timings only."""
 
-    def __init__(self, busy=None):
+    def __init__(self, busy=None, most: int | None = None):
         self.busy = busy
+        self.most = most
 
     @contextmanager
     def share(self):
-        if self.busy is None or not self.busy():
+        if self.busy is None:
             yield
             return
         import numba
 
         n = numba.get_num_threads()
-        numba.set_num_threads(1)
+        want = 1 if self.busy() else (self.most or n)
+        if want == n:
+            yield
+            return
+        numba.set_num_threads(want)
         try:
             yield
         finally:

@@ -130,6 +130,38 @@ def test_the_worker_uses_every_numba_thread_only_while_the_caller_waits():
     assert seen == [1, numba.get_num_threads(), numba.get_num_threads()]
 
 
+def test_a_long_worker_call_takes_every_core_for_its_searches_once_the_caller_waits():
+    """A call that began while the caller worked (one numba thread) asks again before each of global
+    SLAM's searches: those that run after the caller started waiting get every thread."""
+    import threading
+
+    import numba
+
+    if numba.get_num_threads() < 2:
+        pytest.skip("numba has one thread here")
+    slam = slam2d.Slam(config_from_dict({"loop_closure": {"background": True}}))
+    b, cores = slam._background, slam.global_slam.cores
+    seen, started = [], threading.Event()
+
+    def long_call():
+        with cores.share():  # a search while the caller still works
+            seen.append(numba.get_num_threads())
+        started.set()
+        for _ in range(1000):  # the call goes on until the caller waits for it
+            if b.caller_waits():
+                break
+            threading.Event().wait(0.01)
+        with cores.share():  # a search after the caller started waiting
+            seen.append(numba.get_num_threads())
+        seen.append(numba.get_num_threads())  # outside a search: the count the call started with
+
+    b.submit(long_call)
+    assert started.wait(10)
+    b.wait()
+    assert seen == [1, numba.get_num_threads(), 1]
+    b.join()
+
+
 def test_caller_cores_leave_one_thread_only_while_the_worker_is_busy():
     """Local SLAM's parallel kernels ask right before they run: one numba thread while global SLAM's
     worker is busy, all of them otherwise, and the count is restored afterwards (also on an error)."""

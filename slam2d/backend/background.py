@@ -12,7 +12,10 @@ An exception on the worker is raised on the caller's next call.
 
 The worker's parallel kernels run on one numba thread while the caller works (local SLAM has the
 other core), and on all of them while the caller waits for the worker (``wait``, ``join``): the
-loop search left at the end of a run then uses both cores. Kernels give the same results on any
+loop search left at the end of a run then uses both cores. A call is given its count when it
+starts, and global SLAM's searches ask again right before they run (``GlobalSlam.cores``), so a
+long call that began while the caller worked (a finished submap's wide search near the end of a
+log) takes the second core as soon as the caller waits. Kernels give the same results on any
 number of threads.
 """
 from __future__ import annotations
@@ -85,6 +88,10 @@ class Background:
         """The worker thread's CPU time in the calls it has run [s] (``time.thread_time``): beside the
         caller's own (``Slam``'s ``add_scan`` timing), what global SLAM costs the cores."""
         return self._cpu[0]
+
+    def caller_waits(self) -> bool:
+        """The caller is waiting for the worker (``wait``, ``join``): its cores are free."""
+        return self._waited.is_set()
 
     def idle(self) -> bool:
         """Nothing queued and nothing running (a hint: the worker may take up work as this returns)."""

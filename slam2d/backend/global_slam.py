@@ -29,6 +29,7 @@ from slam2d.backend.loop_closure import StackCache, SubmapMatcher, loop_points, 
 from slam2d.backend.wide_search import coarse_grid, coarse_match, frame_offset, submap_content
 from slam2d.geometry import between, compose, inverse, transform_points
 from slam2d.matching.real_time import unmatched_covariance
+from slam2d.threads import CallerCores
 
 log = logging.getLogger(__name__)
 
@@ -83,6 +84,8 @@ class GlobalSlam:
         self.final_accepted = 0
         self.final_search_seconds = 0.0
         self.wide_searches = 0
+        # the cores its searches may use (``Slam`` sets it when this runs on a worker beside local SLAM)
+        self.cores = CallerCores()
         self.wide_accepted = 0
         self.field_submaps = 0  # finished submaps scored on their likelihood field (``add_finished_submap``)
         self.sampled: list[int] = []  # nodes matched against finished submaps (and new submaps against them)
@@ -375,10 +378,11 @@ class GlobalSlam:
         lin, ang = window
         t0 = time.perf_counter()
         min_score = self.min_scores[k]
-        res = m.match(node["points"], initial, lin, ang, min_score,
-                      (lc.refine_occupied_weight, lc.refine_translation_weight, lc.refine_rotation_weight, 20),
-                      lc.min_margin, (lc.margin_window, math.radians(lc.margin_window_deg)),
-                      (lc.margin_exclusion, math.radians(lc.margin_exclusion_deg)), estimate=estimate)
+        with self.cores.share():
+            res = m.match(node["points"], initial, lin, ang, min_score,
+                          (lc.refine_occupied_weight, lc.refine_translation_weight, lc.refine_rotation_weight, 20),
+                          lc.min_margin, (lc.margin_window, math.radians(lc.margin_window_deg)),
+                          (lc.margin_exclusion, math.radians(lc.margin_exclusion_deg)), estimate=estimate)
         dt = time.perf_counter() - t0
         self.search_seconds += dt
         self.searches += 1
@@ -502,7 +506,8 @@ class GlobalSlam:
         if k not in self.coarse:
             self.coarse[k] = coarse_grid(self.matchers[k].submap.grid)
         initial = compose(inverse(self._transform(k)), compose(t_s, centre))
-        found = coarse_match(content, centre, initial, self.coarse[k], lin, ang)
+        with self.cores.share():
+            found = coarse_match(content, centre, initial, self.coarse[k], lin, ang)
         self.wide_searches += 1
         self.search_seconds += time.perf_counter() - t0
         if found is None:
