@@ -197,6 +197,9 @@ class LocalSlam:
         self._vain_search_at = None  # where a recovery for a low-scoring peak found nothing (``_searched_in_vain``)
         self.num_recovery_skipped = 0
         self.num_unsupported_jumps = 0
+        self._stalled_at = None  # the odometry reading at which the stream stalled (``_odometry_reading``)
+        self.num_odometry_stalls = 0
+        self.num_odometry_stalled_scans = 0
         self.untrusted_in_a_row = 0
         self._doubt = np.zeros(2)  # MatchingResult.doubt, gathered until the next insertion
         self._carried = np.zeros(2)  # distance, |rotation| of the motion since the last pose that was not carried from a prediction
@@ -416,7 +419,13 @@ class LocalSlam:
         rd = range_data(scan, self.cfg.range_filter)
         kept = voxel_filter_index(rd.hits, self.cfg.range_filter.voxel_filter_size)
         points = rd.hits[kept]
-        odom = scan.odom_pose if self.cfg.real_time_matcher.use_odometry else None
+        odom = self._odometry_reading(scan.odom_pose if self.cfg.real_time_matcher.use_odometry else None)
+        submap = self.submaps.matching_submap
+        grid = None if submap is None else submap.match_grid()
+        ref = self._still(odom, grid, points)
+        if self._stalled_at is not None:  # stalled (``_still`` may have found it at this scan)
+            odom = None
+            self.num_odometry_stalled_scans += 1
         from_odometry = self.extrapolator.from_odometry(odom)  # else constant velocity: an assumption
         predicted = self.extrapolator.predict(scan.timestamp, odom)
         pose = predicted
@@ -426,9 +435,6 @@ class LocalSlam:
         quality = "unmatched"
         still_ref = False  # this scan becomes the reference of ``_still``
         recovered = None  # the pose a recovered match replaced
-        submap = self.submaps.matching_submap
-        grid = None if submap is None else submap.match_grid()
-        ref = self._still(odom, grid, points)
         if ref is not None:
             # the robot stood still since a scan that was matched and trusted: that scan's pose
             pose, score, match = ref[1], ref[3], ref[2]
@@ -603,7 +609,27 @@ class LocalSlam:
         if ref is None or odom is None or grid is None or len(points) < 3 or not np.array_equal(odom, ref[0]):
             return None
         m = self.still_matcher._match(grid, ref[1], points, 0.0, grid.resolution, 1e-9)
+        if m is not None and m.on_edge:
+            # the robot moved while the odometry read the same: the stream has stalled (``_odometry_reading``)
+            self._stalled_at = np.array(odom, dtype=float)
+            self.num_odometry_stalls += 1
         return None if m is None or m.on_edge else ref
+
+    def _odometry_reading(self, odom):
+        """The scan's wheel odometry, or None while the stream is stalled: from a scan at which the
+        robot moved while the reading stayed what it was (``_still``'s lattice check) until the
+        reading changes. A stalled reading says the robot stands still while it drives; taken as a
+        measurement it would hold scans at the last pose (``_still``) and size every window for no
+        motion. Logs written without wheel odometry often fill its fields with one constant pose
+        (zeros), which stalls at the first scan that shows motion and never resumes. Meanwhile the
+        scans are predicted as without odometry (constant velocity); ``odometry_stalled_scans`` in
+        the summary counts them."""
+        if odom is not None and self._stalled_at is not None:
+            if not np.array_equal(odom, self._stalled_at):
+                self._stalled_at = None  # the stream moves again
+                return odom
+            return None
+        return odom
 
     def _searched_in_vain(self, predicted) -> bool:
         """Whether a low-scoring peak inside the window skips the recovery search: one made for such a
@@ -644,11 +670,18 @@ class LocalSlam:
 
     def summary(self) -> dict:
         s = np.asarray(self.scores) if self.scores else np.zeros(1)
+        n = self.num_matched + self.num_untrusted + self.num_still
+        if n and self.num_odometry_stalled_scans > n / 2:
+            log.warning("the wheel odometry read the same pose at %d of %d scans while the scans showed the robot "
+                        "moving: those were predicted without it (is the log's odometry empty?)",
+                        self.num_odometry_stalled_scans, n)
         return {"local_slam": {"matched_scans": self.num_matched, "inserted_scans": self.num_inserted,
                                "wide_searches": self.num_escalated,
                                "recovery_searches": self.num_recovery_searches, "recovered": self.num_recovered,
                                "recovery_skipped": self.num_recovery_skipped,
                                "unsupported_jumps": self.num_unsupported_jumps,
+                               "odometry_stalls": self.num_odometry_stalls,
+                               "odometry_stalled_scans": self.num_odometry_stalled_scans,
                                "untrusted": self.num_untrusted, "inserted_untrusted": self.num_forced, "weak": self.num_weak,
                                "degenerate": self.num_degenerate, "still": self.num_still,
                                "submaps": self.submaps.count, "finished_submaps": len(self.finished_submaps),

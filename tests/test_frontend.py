@@ -1013,3 +1013,87 @@ def test_active_submaps_built_in_a_batch_equal_scan_by_scan(restart_at):
         same(_cells(s.grid, True), _cells(ref, True))
     # the kept scans are the newer submap's, and none is left over once it is the only one
     assert len(act._pending) == (act.submaps[1].num_range_data if len(act.submaps) == 2 else 0)
+
+
+
+def _slow_drive(n, rate_hz=25.0):
+    """The simulator's drive at 0.5 m/s, 25 scans a second: 2 cm and at most 2.3° between scans, less
+    than half a cell of the default grid, as a robot creeping along."""
+    import itertools
+
+    from slam2d.io.simulator import SimConfig, simulate
+
+    scans = list(itertools.islice(simulate(SimConfig(rate_hz=rate_hz, speed=0.5)), n))
+    for i, s in enumerate(scans):
+        s.index = i
+    return scans
+
+
+@pytest.mark.parametrize("stall_at", [0, 150])
+def test_an_odometry_that_stops_changing_while_the_robot_creeps_on_is_set_aside(stall_at):
+    """From scan ``stall_at`` on the odometry repeats one reading (at 0: a log written without wheel
+    odometry, its fields one constant pose) while the robot drives on at 2 cm a scan, too little
+    for ``_still``'s lattice check to see at every scan. The first scan that shows motion under the
+    repeated reading marks the stream stalled: no scan after it is held at the last pose as if the
+    robot stood still (before: about every other one), the scans are predicted as without
+    odometry, and the trajectory follows the ground truth as a run without odometry does."""
+    scans = _slow_drive(700)
+    frozen = np.zeros(3) if stall_at == 0 else scans[stall_at].odom_pose.copy()
+    for s in scans[stall_at:]:
+        s.odom_pose = frozen.copy()
+    tracker, poses = _run(scans)
+    assert tracker.num_odometry_stalls >= 1
+    assert tracker.num_odometry_stalled_scans > 0.9 * (len(scans) - stall_at)
+    assert tracker.num_still < 0.02 * len(scans), tracker.num_still
+    for s in scans:
+        s.odom_pose = None
+    _, without = _run(scans)
+    gt = [s.ground_truth for s in scans]
+    a = max(stall_at - 1, 0)
+    for j in range(a + 50, len(scans), 50):
+        dt, dr = _rel_error(poses[a], poses[j], gt[a], gt[j])
+        dt0, dr0 = _rel_error(without[a], without[j], gt[a], gt[j])
+        assert dt < max(0.1, 2 * dt0) and dr < max(1.0, 2 * dr0), (j, dt, dr, dt0, dr0)
+
+
+def test_an_odometry_that_resumes_after_a_stall_is_used_again():
+    """The stream stalls for 100 scans while the robot drives, then moves again: from the first
+    changed reading on, the odometry predicts the scans again (no scan after it counts as stalled),
+    and none did before the stall."""
+    scans = _slow_drive(400)
+    for s in scans[170:270]:
+        s.odom_pose = scans[170].odom_pose.copy()
+    tracker = LocalSlam(config_from_dict({}), loop_closure=True)
+    stalled = []
+    for s in scans:
+        before = tracker.num_odometry_stalled_scans
+        tracker.add_scan(s)
+        stalled.append(tracker.num_odometry_stalled_scans > before)
+    assert not any(stalled[:170])
+    assert tracker.num_odometry_stalls >= 1 and sum(stalled[170:270]) > 90 and not any(stalled[270:])
+
+
+def test_aces_with_its_odometry_stream_stopped_a_seventh_of_the_way_in():
+    """Real data: ACES with the odometry reading of scan 1000 repeated by every later scan (the laser
+    pose with it, as a logger whose odometry died writes them), local SLAM alone. Before the stall
+    was detected, scans crept at the last pose until a turn broke the map (relations 1.9 m mean,
+    88° worst); predicted without the dead stream it matches as well as local SLAM with odometry
+    (about 0.055 m, README)."""
+    from conftest import dataset, relations
+    from slam2d.eval.relations import read_relations, relations_metric
+    from slam2d.io.source import open_source
+    from slam2d.slam import Slam
+
+    log, rel = dataset("aces"), read_relations(relations("aces"))
+    slam = Slam(config_from_dict({}), mode="local")
+    frozen = None
+    for i, s in enumerate(open_source(log)):
+        if i == 1000:
+            frozen = s.odom_pose.copy()
+        if frozen is not None:
+            s.odom_pose = frozen.copy()
+        slam.add_scan(s)
+    r = slam.finish()
+    assert r.summary["local_slam"]["odometry_stalled_scans"] > 0.8 * (r.summary["scans"] - 1000)
+    m = relations_metric(r.times, r.poses, rel)
+    assert m["abs_trans_m"]["mean"] < 0.1 and m["abs_rot_deg"]["max"] < 5.0, m
