@@ -212,6 +212,9 @@ def cmd_info(args) -> int:
     source = _source(args)
     info = describe(source)
     info["file"] = args.input
+    if info["has_odometry"] and info["odometry_changes_between_scans"] == 0:
+        info["odometry_note"] = ("every scan's odometry reads the same pose: it carries no motion, and local SLAM "
+                                 "predicts without it once the scans show the robot moving")
     facts = getattr(source, "facts", None)
     if callable(facts):  # CARMEN: what the first pass decided about no-return readings, and why
         f = facts()

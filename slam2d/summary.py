@@ -34,7 +34,8 @@ def describe(source, usable_range: float | None = None) -> dict:
     r_min, r_max = math.inf, -math.inf
     hit_max = 0.0
     invalid = no_ret = nan = readings = reversals = with_odom = with_gt = 0
-    last = None
+    odom_pairs = odom_changes = 0  # consecutive scans with odometry, and those whose readings differ
+    last = last_odom = None
     offset = None
     for s in source:
         n += 1
@@ -55,6 +56,11 @@ def describe(source, usable_range: float | None = None) -> dict:
         if s.no_return is not None:
             no_ret += int(np.count_nonzero(s.no_return))
         with_odom += s.odom_pose is not None
+        if s.odom_pose is not None:
+            if last_odom is not None:
+                odom_pairs += 1
+                odom_changes += not np.array_equal(s.odom_pose, last_odom)
+            last_odom = s.odom_pose
         with_gt += s.ground_truth is not None
         offset = s.laser_offset
     return {
@@ -75,6 +81,9 @@ def describe(source, usable_range: float | None = None) -> dict:
         "no_return_readings": no_ret,
         "nan_readings": nan,
         "has_odometry": with_odom == n,
+        # the share of consecutive scans whose odometry readings differ: 0 is an odometry that carries
+        # no motion (local SLAM sets a stalled stream aside, ``LocalSlam._odometry_reading``)
+        "odometry_changes_between_scans": round(odom_changes / odom_pairs, 4) if odom_pairs else None,
         "has_ground_truth": with_gt == n,
         "laser_offset": [round(float(v), 6) for v in offset] if offset is not None else None,
         "timestamp_reversals": reversals,

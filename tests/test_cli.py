@@ -76,8 +76,24 @@ def test_info_json_and_dump_config(tmp_path):
     r = slam2d("info", BUNDLED, "--json")
     info = json.loads(r.stdout)
     assert info["scans"] == 1480 and info["beams"] == 360 and info["has_odometry"] and info["has_ground_truth"]
+    assert info["odometry_changes_between_scans"] > 0.9 and "odometry_note" not in info
     r = slam2d("dump-config")
     assert r.stdout == (ROOT / "configs" / "default.yaml").read_text()
+
+
+def test_info_says_when_a_log_s_odometry_never_changes(tmp_path, flaser_line):
+    """A log written without wheel odometry, its FLASER pose fields all zero: ``info`` reports that no
+    two scans' readings differ and what local SLAM does about it; one moving reading changes that."""
+    still = tmp_path / "zero.clf"
+    still.write_text("".join(flaser_line([1.0 + 0.01 * i, 2.0, 3.0], ts=f"{100 + i}.0") for i in range(6)))
+    info = json.loads(slam2d("info", still, "--json").stdout)
+    assert info["has_odometry"] and info["odometry_changes_between_scans"] == 0
+    assert "no motion" in info["odometry_note"]
+    moving = tmp_path / "moving.clf"
+    moving.write_text("".join(flaser_line([1.0, 2.0, 3.0], pose=(0.0, 0.0, 0.0) if i < 5 else (0.1, 0.0, 0.0),
+                                          ts=f"{100 + i}.0") for i in range(6)))
+    info = json.loads(slam2d("info", moving, "--json").stdout)
+    assert info["odometry_changes_between_scans"] == 0.2 and "odometry_note" not in info
 
 
 def test_convert_then_run_on_mcap(tmp_path, flaser_line):
