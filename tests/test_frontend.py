@@ -1015,15 +1015,14 @@ def test_active_submaps_built_in_a_batch_equal_scan_by_scan(restart_at):
     assert len(act._pending) == (act.submaps[1].num_range_data if len(act.submaps) == 2 else 0)
 
 
-
-def _slow_drive(n, rate_hz=25.0):
+def _slow_drive(n):
     """The simulator's drive at 0.5 m/s, 25 scans a second: 2 cm and at most 2.3° between scans, less
     than half a cell of the default grid, as a robot creeping along."""
     import itertools
 
     from slam2d.io.simulator import SimConfig, simulate
 
-    scans = list(itertools.islice(simulate(SimConfig(rate_hz=rate_hz, speed=0.5)), n))
+    scans = list(itertools.islice(simulate(SimConfig(rate_hz=25.0, speed=0.5)), n))
     for i, s in enumerate(scans):
         s.index = i
     return scans
