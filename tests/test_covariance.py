@@ -126,14 +126,20 @@ def test_unmatched_scans_get_the_loosest_covariance():
     gs.add_node(scan, np.zeros(3), np.zeros((0, 2)), None, [(0, np.zeros(3))])
     rt = cfg.real_time_matcher
     prior = unmatched_covariance(rt.linear_search_window, math.radians(rt.angular_search_window_deg))
-    for j, cov in [(1, None), (2, np.diag([1e-6, 1e-6, 1e-8]))]:
+    for j, cov in [(1, np.diag([1e-6, 1e-6, 1e-8])), (2, None), (3, np.diag([1e-6, 1e-6, 1e-8]))]:
         s = Scan(float(j), np.ones(3, np.float32), 0.0, 0.1, 0.0, 10.0, np.ones(3, bool), index=j)
         gs.add_node(s, np.array([0.1 * j, 0.0, 0.4]), np.zeros((0, 2)), cov, [(0, np.zeros(3))])
-    f_unmatched, f_matched = gs.graph.graph.at(1), gs.graph.graph.at(2)
+    g = gs.graph.graph
+
+    def in_submap(j):  # node j's constraint to the submap's first node (node 0), not its step from j - 1
+        (i,) = [i for i in range(g.size()) if set(g.at(i).keys()) == {gtsam.symbol("n", 0), gtsam.symbol("n", j)}]
+        return g.at(i)
+
+    f_unmatched, f_matched = in_submap(2), in_submap(3)
     cov_u = np.linalg.inv(f_unmatched.noiseModel().R().T @ f_unmatched.noiseModel().R())
     cov_m = np.linalg.inv(f_matched.noiseModel().R().T @ f_matched.noiseModel().R())
-    # the unmatched prior plus the submap's drift over the 0.1 m travelled since its first node
-    np.testing.assert_allclose(np.linalg.eigvalsh(cov_u), np.linalg.eigvalsh(prior + gs._drift_covariance(0.1)), rtol=1e-6)
+    # the unmatched prior plus the submap's drift over the 0.2 m travelled since its first node
+    np.testing.assert_allclose(np.linalg.eigvalsh(cov_u), np.linalg.eigvalsh(prior + gs._drift_covariance(0.2)), rtol=1e-6)
     # never tighter than a matched scan's, in any direction
     assert np.all(np.linalg.eigvalsh(cov_u - cov_m) > 0)
     # and no matched window can hold a variance larger than the unmatched one

@@ -423,9 +423,11 @@ def test_gnc_prune_removes_a_false_loop_and_keeps_the_true_one():
     assert true["in_final_graph"] and len(g.loops) == 1
 
 
-def _star_graph(seed=3, submaps=8, per=12):
+def _star_graph(seed=3, submaps=8, per=12, steps=False):
     """A pose graph shaped as slam2d builds it: node j hangs from the first node (anchor) of each of
-    the one or two overlapping submaps it lies in; local constraints carry drift and noise."""
+    the one or two overlapping submaps it lies in; local constraints carry drift and noise.
+    ``steps``: also local SLAM's step between consecutive nodes, left out of GNC's screen as
+    ``GlobalSlam.add_node`` leaves out every step a submap spans."""
     from slam2d.backend.pose_graph import PoseGraph
 
     rng = np.random.default_rng(seed)
@@ -444,6 +446,8 @@ def _star_graph(seed=3, submaps=8, per=12):
             if a < k < a + per:
                 cov = np.diag([1e-4, 1e-4, 5e-5]) * (k - a)  # the drift's, with room
                 g.add_intra(a, k, between(local[a], local[k]), cov)
+        if steps and k:
+            g.add_intra(k - 1, k, between(local[k - 1], local[k]), np.diag([2e-4, 2e-4, 6e-6]), screened=False)
     return g, gt
 
 
@@ -474,14 +478,19 @@ def test_reduced_graph_keeps_the_solution_of_the_nodes_it_keeps():
         assert math.hypot(a.x() - b.x(), a.y() - b.y()) < 2e-3 and abs(a.theta() - b.theta()) < 2e-4, j
 
 
-def test_gnc_on_the_reduced_graph_removes_the_false_loop_only():
-    g, gt = _star_graph(seed=5)
+@pytest.mark.parametrize("steps", [False, True])
+def test_gnc_on_the_reduced_graph_removes_the_false_loop_only(steps):
+    """GNC on the reduced graph removes the one false loop, also where the graph holds local SLAM's
+    steps between consecutive nodes: the screen leaves out the steps a submap spans, so it still
+    eliminates most nodes."""
+    g, gt = _star_graph(seed=5, steps=steps)
     n = len(gt)
     true = [{"accepted": True, "in_final_graph": True} for _ in range(2)]
     g.add_loop(0, n - 5, between(gt[0], gt[n - 5]), [0.02, 0.02, 0.005], true[0])
     g.add_loop(6, n - 20, between(gt[6], gt[n - 20]), [0.02, 0.02, 0.005], true[1])
     false = {"accepted": True, "in_final_graph": True}
     g.add_loop(12, 40, between(gt[12], gt[40]) + [1.5, -1.0, 0.4], [0.02, 0.02, 0.005], false)
+    assert g._reduced()[1].size() < n // 3
     out = g.gnc_prune()
     assert [f.record for f in out] == [false] and all(r["in_final_graph"] for r in true)
 

@@ -73,7 +73,7 @@ class GlobalSlam:
         self._segment_of: dict[int, int] = {}
         self.fresh_starts: list[int] = []  # the nodes local SLAM started afresh with
         self.heading_constraints = 0  # heading constraints added (``_search``'s heading)
-        self._last_step = None  # the newest node's (submaps, floored map-axes covariance), for the next step
+        self._last_submaps: set[int] = set()  # the submaps the newest node was inserted into
         # per (node, submap) searched: the node's pose in the submap's grid frame the search started
         # from, its window (m, rad) and whether it was accepted (``final_search``)
         self._searched: dict[tuple[int, int], tuple] = {}  # (x, y, θ, lin, ang, accepted)
@@ -116,6 +116,8 @@ class GlobalSlam:
                                                   math.radians(lc.consistency_drift_deg), lc.consistency_min_support))
         rt = cfg.real_time_matcher
         self.unmatched_cov = unmatched_covariance(rt.linear_search_window, math.radians(rt.angular_search_window_deg))
+        #: a matched node's covariance at its floor (isotropic, so the same in every frame)
+        self.step_floor = _floored(None, self.lc.min_local_sigma_translation, math.radians(self.lc.min_local_sigma_rotation_deg))
 
     # ---- estimates
     def global_node(self, j) -> np.ndarray:
@@ -161,13 +163,20 @@ class GlobalSlam:
         if fresh_start and submaps:
             self._segment_start = min(submaps)
             self.fresh_starts.append(j)
-        if prev is not None and submaps and not submaps & self._last_step[0]:
-            # no submap holds both nodes (local SLAM started afresh): the step between them is the only
-            # link, as loose as local SLAM's doubt about it
+        if prev is not None and submaps:
+            # local SLAM's step from the previous node (Cartographer's constraint on consecutive nodes'
+            # local poses, Karto's sequential edge): the node-in-submap constraints below tie each node
+            # to its submap's first node alone, as loosely as a weak match or the drift along the
+            # submap allows, so without the step a loop could pull its end node away from the nodes
+            # beside it. The two nodes were matched against the same content, so their step is known
+            # to the floor of a match, plus the drift over the step and whatever local SLAM could not
+            # vouch for on it (its doubt); where local SLAM started afresh, so that no submap holds
+            # both, the doubt makes it as loose as the recovery was, and it is their only link.
             self.graph.add_intra(self.node_order[-2], j, between(prev["local"], local_pose),
-                                 node_frame_covariance(floored + self._last_step[1], local_pose[2])
-                                 + self._drift_covariance(step) + np.diag([doubt[0] ** 2, doubt[0] ** 2, doubt[1] ** 2]))
-        self._last_step = (submaps, floored)
+                                 2.0 * self.step_floor + self._drift_covariance(step)
+                                 + np.diag([doubt[0] ** 2, doubt[0] ** 2, doubt[1] ** 2]),
+                                 screened=not submaps & self._last_submaps)
+        self._last_submaps = submaps
         for k, sub_local in inserted_into:
             self._segment_of.setdefault(k, self._segment_start)
             if k not in self.submap_local:

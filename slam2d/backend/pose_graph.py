@@ -4,8 +4,9 @@ Variables are node poses in the map frame; a submap's pose is the pose of its fi
 (the node whose local pose started it), so a submap needs no variable of its own. Factors:
 a prior on the first node; node-in-submap constraints from local SLAM between a submap's
 first node and each node inserted into it (their noise from the real-time matcher's
-covariance, in the node's frame); where local SLAM started afresh, so that no submap holds two
-consecutive nodes, the step between them (``GlobalSlam.add_node``); loop-closure constraints with their own covariance from the match,
+covariance, in the node's frame); local SLAM's step between consecutive nodes, known to a
+match's floor plus what local SLAM could not vouch for (``GlobalSlam.add_node``; where local SLAM
+started afresh, the only link); loop-closure constraints with their own covariance from the match,
 under a Huber robust noise model. ``optimize`` solves from the current estimate, either by batch
 Levenberg-Marquardt over the whole graph or, with ``incremental``, by iSAM2 (Kaess et al. 2012),
 which takes only the factors and nodes added since its last update, re-eliminates the part of
@@ -96,6 +97,7 @@ class PoseGraph:
         self.max_residual_rot = max_residual_rot
         self.loops: list[LoopFactor] = []
         self.removed: list[LoopFactor] = []
+        self._unscreened: set[int] = set()  # graph indices of local factors ``_reduced`` leaves out
         self.has_prior = False
         self.iterations = 0
         self.last_error = (math.nan, math.nan)
@@ -134,10 +136,14 @@ class PoseGraph:
         return self._ids, np.asarray(gtsam.utilities.extractPose2(self.values), dtype=float).reshape(-1, 3)
 
     # ---- factors
-    def add_intra(self, anchor: int, j: int, relative, covariance: np.ndarray):
-        """Node ``j`` in the submap whose first node is ``anchor``."""
+    def add_intra(self, anchor: int, j: int, relative, covariance: np.ndarray, screened: bool = True):
+        """Node ``j`` in the submap whose first node is ``anchor``, or local SLAM's step from node
+        ``anchor`` to ``j``. ``screened``: the factor is part of the graph ``gnc_prune`` screens the
+        loops on (``_reduced``); False for a step that another path of local constraints already spans."""
         noise = gtsam.noiseModel.Gaussian.Covariance(np.asarray(covariance, dtype=float))
-        self._add(gtsam.BetweenFactorPose2(_key("n", anchor), _key("n", j), _pose(relative), noise))
+        i = self._add(gtsam.BetweenFactorPose2(_key("n", anchor), _key("n", j), _pose(relative), noise))
+        if not screened:
+            self._unscreened.add(i)
 
     def add_loop(self, anchor: int, j: int, relative, covariance, record: dict, heading_only: bool = False) -> LoopFactor:
         """``covariance``: 3×3 in the node's frame, or 3 sigmas. ``heading_only``: a heading constraint
@@ -222,7 +228,10 @@ class PoseGraph:
         """Graduated non-convexity (Yang et al. 2020; ``gtsam.GncLMOptimizer``, truncated least squares)
         over the loops as plain Gaussians, every other factor a known inlier; loops it weighs below
         0.5 are removed. Returns them. It runs on ``_reduced``'s graph: the same loops over fewer
-        variables."""
+        variables, without the steps between consecutive nodes that a submap already links (they
+        stiffen the chain between its nodes but tie no new places together; with them, hardly any
+        node could be eliminated and the screen cost several times as much). The solves after it
+        have every factor, and the residual check removes what the steps contradict."""
         g, values, slots = self._reduced()
         if not slots:
             return []
@@ -243,14 +252,15 @@ class PoseGraph:
         first order (Ad_z_b (Σ_a + Σ_b) Ad_z_bᵀ, both in j's frame). Nodes with one local constraint
         go with it (a leaf changes no other node's solution); a node is only eliminated when both
         its neighbours stay. In slam2d's graph, where a node hangs from the first nodes of the one or
-        two submaps it lies in, what stays is those first nodes, the loops' ends and the prior's node.
+        two submaps it lies in (the steps between consecutive nodes that a submap also links are left
+        out: ``gnc_prune``), what stays is those first nodes, the loops' ends and the prior's node.
         The composed constraints between the same two nodes are fused into one (``_fuse``). Loops go
         in as plain Gaussians. Returns (graph, values, {graph index: LoopFactor})."""
         by_index = {f.index: f for f in self.loops}
         locals_of: dict[int, list[int]] = {}
         fixed = set()
         for i in range(self.graph.size()):
-            if not self.graph.exists(i):
+            if not self.graph.exists(i) or i in self._unscreened:
                 continue
             keys = list(self.graph.at(i).keys()) if i not in by_index else []
             if i in by_index:
@@ -278,7 +288,7 @@ class PoseGraph:
             if k not in gone:
                 values.insert(k, self.values.atPose2(k))
         for i in range(self.graph.size()):
-            if not self.graph.exists(i):
+            if not self.graph.exists(i) or i in self._unscreened:
                 continue
             f = by_index.get(i)
             if f is not None:

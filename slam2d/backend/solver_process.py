@@ -78,8 +78,9 @@ class RemotePoseGraph:
         return ids, np.array([self._poses[j] for j in ids], dtype=float).reshape(-1, 3)
 
     # ---- factors
-    def add_intra(self, anchor: int, j: int, relative, covariance):
-        self._ops.append(("intra", int(anchor), int(j), np.asarray(relative, float), np.asarray(covariance, float)))
+    def add_intra(self, anchor: int, j: int, relative, covariance, screened: bool = True):
+        self._ops.append(("intra", int(anchor), int(j), np.asarray(relative, float), np.asarray(covariance, float),
+                          bool(screened)))
 
     def add_loop(self, anchor: int, j: int, relative, covariance, record: dict, heading_only: bool = False) -> LoopFactor:
         f = LoopFactor(self._next_id, anchor, j, np.asarray(relative, dtype=float), record, heading_only=heading_only)
