@@ -296,6 +296,12 @@ def test_loops_ground_truth_classifies_exactly(tmp_path):
     assert cs[6]["true_own"] is True and cs[6]["true_gt"] is False  # own check fooled, ground truth not
     assert out["final_graph"] == {"true": 2, "false": 3, "unknown": 0, "precision": 0.4}
     assert out["accepted"] == {"true": 3, "false": 4, "unknown": 0, "precision": 3 / 7}
+    # the false ones of the final graph, each with how far it lies off the ground truth
+    off = {(d["from_scan"], d["to_scan"]): (d["off_m"], d["off_deg"]) for d in out["disagreeing"]}
+    assert set(off) == {(30, 280), (40, 290), (100, 350)}
+    assert off[(30, 280)] == (pytest.approx(0.35, abs=1e-3), pytest.approx(0.0, abs=0.01))
+    assert off[(40, 290)] == (pytest.approx(0.0, abs=1e-3), pytest.approx(2.5, abs=0.01))
+    assert off[(100, 350)][0] == pytest.approx(1.0, abs=0.05)  # the run's own shift of 1 m
     # the circle of radius 5 m is 31 m round: scans ~250 onwards revisit the start
     assert out["recall"]["episodes"] >= 1 and out["recall"]["closed"] >= 1
     # a looser tolerance turns the 0.35 m and 2.5° ones true
@@ -313,6 +319,10 @@ def test_loops_cli_ground_truth_in_scan_order_and_by_timestamp(tmp_path):
     g = json.loads(r.stdout)["ground_truth"]
     assert g["matching"] == "scan_order" and g["matched_scans"] == n
     assert g["final_graph"]["precision"] == pytest.approx(0.4) and g["tolerance"] == {"trans_m": 0.3, "rot_deg": 2.0}
+    # without --json, a line names each false constraint of the final graph
+    r = slam2d("eval", "loops", tmp_path, "--ground-truth", tmp_path / "order.gt.txt")
+    lines = [x for x in r.stdout.splitlines() if x.startswith("ground_truth.disagreeing: ")]
+    assert len(lines) == 3 and "scans 30 -> 280, 0.35 m / 0.0 deg off the ground truth" in lines[0], r.stdout
     # every other pose, shuffled: matched by timestamp; constraints on scans without a pose are unknown
     keep = np.random.default_rng(0).permutation(np.arange(0, n, 2))
     write_tum(tmp_path / "half.gt.txt", [stamps[i] for i in keep], gt[keep])
@@ -360,6 +370,7 @@ def test_loops_ground_truth_of_the_simulator(tmp_path):
     # every constraint the ground truth calls false is put to the raw scans (the log read again)
     fb = g["final_graph"]["false_by_scans"]
     assert set(fb) == {"constraint", "ground_truth", "undecided"} and sum(fb.values()) == g["final_graph"]["false"]
+    assert len(g["disagreeing"]) == g["final_graph"]["false"] and all("scan_check" in d for d in g["disagreeing"])
 
 
 def test_loops_on_a_run_whose_stamps_go_back_and_repeat(tmp_path):

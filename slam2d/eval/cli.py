@@ -135,8 +135,8 @@ def _ate(args) -> int:
 
 
 def _loops(args) -> int:
-    from slam2d.eval.loops import (Thresholds, check_stamps, classify, classify_ground_truth, read_constraints,
-                                   score_histogram)
+    from slam2d.eval.loops import (Thresholds, check_stamps, classify, classify_ground_truth, disagreement,
+                                   read_constraints, score_histogram)
     from slam2d.eval.plots import plot_loops, plot_score_histogram
     from slam2d.eval.reference import load_ground_truth, load_reference, run_input_of
     from slam2d.io.trajectory import read_tum
@@ -170,11 +170,20 @@ def _loops(args) -> int:
         checked = check_run(run_dir, constraints, poses, gt.poses, args.run_input)
         if checked is not None:  # where the ground truth calls a constraint false, which side the scans take
             out["ground_truth"]["final_graph"]["false_by_scans"] = checked
+            out["ground_truth"]["disagreeing"] = [disagreement(c, gt.poses) for c in constraints if c["accepted"]
+                                                  and c.get("in_final_graph", True) and c["true_gt"] is False]
     plot_dir = Path(args.plot_dir) if args.plot_dir else run_dir
     plot_loops(plot_dir / "loops_on_map.png", run_dir, poses, constraints, key)
     plot_score_histogram(plot_dir / "loop_scores.png", out["score_histogram"], "loop-closure scores")
     out.pop("score_histogram") if not args.json else None
     _print(out, args.json)
+    if not args.json:
+        for d in out.get("ground_truth", {}).get("disagreeing", []):
+            check = d.get("scan_check", {})
+            says = f"; the raw scans: {check['verdict']} ({check['share_constraint']} vs {check['share_ground_truth']} " \
+                   f"of the hits on the place)" if check else ""
+            print(f"ground_truth.disagreeing: submap {d['submap']}, scans {d['from_scan']} -> {d['to_scan']}, "
+                  f"{d['off_m']} m / {d['off_deg']} deg off the ground truth, score {d['score']}{says}")
     return 0
 
 

@@ -105,6 +105,20 @@ def agrees(poses: np.ndarray, c: dict, trans: float, rot_deg: float):
     return bool(math.hypot(e[0], e[1]) <= trans and abs(math.degrees(e[2])) <= rot_deg)
 
 
+def disagreement(c: dict, poses: np.ndarray) -> dict:
+    """A constraint that ``poses`` call false, for a user to look up: its submap and scans, how far
+    its measurement lies from the relative pose of ``poses`` (translation [m], rotation [deg]), its
+    score and margin, and the raw scans' verdict where ``scan_check`` gave one."""
+    i, j = c["from_scan"], c["to_scan"]
+    e = between(between(poses[i], poses[j]), np.asarray(c["relative_pose"], dtype=float))
+    out = {"submap": c.get("submap"), "from_scan": int(i), "to_scan": int(j),
+           "off_m": round(math.hypot(e[0], e[1]), 3), "off_deg": round(abs(math.degrees(e[2])), 2),
+           "score": c.get("score"), "margin": c.get("margin")}
+    if "scan_check" in c:
+        out["scan_check"] = c["scan_check"]
+    return out
+
+
 def revisit_episodes(ref_idx: np.ndarray, ref_poses: np.ndarray, th: Thresholds) -> list[tuple[int, int]]:
     """(first scan, last scan) of each run of reference scans that revisit an earlier place."""
     if len(ref_idx) < 2:
@@ -150,6 +164,7 @@ def classify_ground_truth(constraints: list[dict], gt_poses: np.ndarray, gt_scan
     accepted = [c for c in constraints if c["accepted"]]
     final = [c for c in accepted if c.get("in_final_graph", True)]
     return {"tolerance": {"trans_m": trans, "rot_deg": rot_deg},
+            "disagreeing": [disagreement(c, gt_poses) for c in final if c["true_gt"] is False],
             "final_graph": _precision(final, "true_gt"), "accepted": _precision(accepted, "true_gt"),
             "recall": _recall(final, "true_gt", revisit_episodes(gt_scans, gt_poses[gt_scans], th))}
 
