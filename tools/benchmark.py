@@ -202,7 +202,7 @@ def ate_vs_ground_truth(traj: Path, gt_path: Path) -> dict:
 def loops_vs_ground_truth(run_dir: Path, gt_path: Path, check_scans: bool = True) -> dict | None:
     """``slam2d eval loops RUN_DIR --ground-truth GT --json``'s ``ground_truth`` object (None without loops);
     ``check_scans``: put the misses to the raw scans (``false_by_scans``)."""
-    from slam2d.eval.loops import Thresholds, check_stamps, classify_ground_truth, disagreement, read_constraints
+    from slam2d.eval.loops import Thresholds, check_stamps, classify_ground_truth, disagreeing, read_constraints
     from slam2d.eval.reference import load_ground_truth
     from slam2d.io.trajectory import read_tum
 
@@ -218,8 +218,7 @@ def loops_vs_ground_truth(run_dir: Path, gt_path: Path, check_scans: bool = True
     checked = check_run(run_dir, cs, poses, gt.poses) if check_scans else None
     if checked is not None:  # where the ground truth calls a constraint false: which side the raw scans take
         out["final_graph"]["false_by_scans"] = checked
-        out["disagreeing"] = [disagreement(c, gt.poses) for c in cs
-                              if c["accepted"] and c.get("in_final_graph", True) and c["true_gt"] is False]
+        out["disagreeing"] = disagreeing(cs, gt.poses)  # now with the verdicts
     return out
 
 

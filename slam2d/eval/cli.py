@@ -135,7 +135,7 @@ def _ate(args) -> int:
 
 
 def _loops(args) -> int:
-    from slam2d.eval.loops import (Thresholds, check_stamps, classify, classify_ground_truth, disagreement,
+    from slam2d.eval.loops import (Thresholds, check_stamps, classify, classify_ground_truth, disagreeing,
                                    read_constraints, score_histogram)
     from slam2d.eval.plots import plot_loops, plot_score_histogram
     from slam2d.eval.reference import load_ground_truth, load_reference, run_input_of
@@ -170,8 +170,7 @@ def _loops(args) -> int:
         checked = check_run(run_dir, constraints, poses, gt.poses, args.run_input)
         if checked is not None:  # where the ground truth calls a constraint false, which side the scans take
             out["ground_truth"]["final_graph"]["false_by_scans"] = checked
-            out["ground_truth"]["disagreeing"] = [disagreement(c, gt.poses) for c in constraints if c["accepted"]
-                                                  and c.get("in_final_graph", True) and c["true_gt"] is False]
+            out["ground_truth"]["disagreeing"] = disagreeing(constraints, gt.poses)  # now with the verdicts
     plot_dir = Path(args.plot_dir) if args.plot_dir else run_dir
     plot_loops(plot_dir / "loops_on_map.png", run_dir, poses, constraints, key)
     plot_score_histogram(plot_dir / "loop_scores.png", out["score_histogram"], "loop-closure scores")

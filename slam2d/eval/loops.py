@@ -119,6 +119,13 @@ def disagreement(c: dict, poses: np.ndarray) -> dict:
     return out
 
 
+def disagreeing(constraints: list[dict], poses: np.ndarray) -> list[dict]:
+    """``disagreement`` of every accepted constraint of the final graph that ``classify_ground_truth``
+    called false, in constraint order (with the raw scans' verdict once ``scan_check`` has run)."""
+    return [disagreement(c, poses) for c in constraints
+            if c["accepted"] and c.get("in_final_graph", True) and c.get("true_gt") is False]
+
+
 def revisit_episodes(ref_idx: np.ndarray, ref_poses: np.ndarray, th: Thresholds) -> list[tuple[int, int]]:
     """(first scan, last scan) of each run of reference scans that revisit an earlier place."""
     if len(ref_idx) < 2:
@@ -164,7 +171,7 @@ def classify_ground_truth(constraints: list[dict], gt_poses: np.ndarray, gt_scan
     accepted = [c for c in constraints if c["accepted"]]
     final = [c for c in accepted if c.get("in_final_graph", True)]
     return {"tolerance": {"trans_m": trans, "rot_deg": rot_deg},
-            "disagreeing": [disagreement(c, gt_poses) for c in final if c["true_gt"] is False],
+            "disagreeing": disagreeing(constraints, gt_poses),
             "final_graph": _precision(final, "true_gt"), "accepted": _precision(accepted, "true_gt"),
             "recall": _recall(final, "true_gt", revisit_episodes(gt_scans, gt_poses[gt_scans], th))}
 
