@@ -62,9 +62,11 @@ class PoseExtrapolator:
     millisecond apart (Intel: bursts, reordered and repeated stamps), and the motion between two
     such scans is matching noise divided by almost nothing, which constant-velocity prediction
     would carry metres into the next scan. Poses that are not trusted matches leave the velocity
-    as it was (``add``). ``max_turn_rate`` is the fastest turn a velocity has measured so far, and
-    ``measured_time`` the time of the last trusted pose: without odometry, what the robot can
-    have turned since (``LocalSlam._recovery_rotation``)."""
+    as it was (``add``). ``max_turn_rate`` and ``max_speed`` are the fastest turn and the fastest
+    translation a velocity has measured so far, and ``measured_time`` and ``measured_pose`` the
+    time and pose of the last trusted match: without odometry, what the robot can have turned
+    since (``LocalSlam._recovery_rotation``) and how far it can have gone
+    (``LocalSlam._reachable``)."""
 
     def __init__(self):
         self.last_pose = None
@@ -72,6 +74,7 @@ class PoseExtrapolator:
         self.last_odom = None
         self.velocity = np.zeros(3)  # in the robot frame, per second
         self.max_turn_rate = 0.0  # the largest |velocity θ| so far [rad/s]
+        self.max_speed = 0.0  # the largest |velocity x, y| so far [m/s]
         self._history: deque = deque(maxlen=VELOCITY_HISTORY)  # (time, pose), oldest first
         self._periods: deque = deque(maxlen=VELOCITY_HISTORY)
 
@@ -87,6 +90,11 @@ class PoseExtrapolator:
     def measured_time(self) -> float | None:
         """The time of the last trusted pose (None before the first)."""
         return self._history[-1][0] if self._history else None
+
+    @property
+    def measured_pose(self) -> np.ndarray | None:
+        """The pose of the last trusted match (None before the first)."""
+        return self._history[-1][1] if self._history else None
 
     def from_odometry(self, odom) -> bool:
         """Whether ``predict`` with this odometry reading measures the motion (odometry increments),
@@ -116,6 +124,7 @@ class PoseExtrapolator:
                 # in the older pose's frame, applied from the newest: right for a constant twist
                 self.velocity = between(p0, pose) / (time_s - t0)
                 self.max_turn_rate = max(self.max_turn_rate, abs(float(self.velocity[2])))
+                self.max_speed = max(self.max_speed, math.hypot(float(self.velocity[0]), float(self.velocity[1])))
             self._history.append((time_s, pose))
         self.last_pose, self.last_time, self.last_odom = pose, time_s, odom
 
@@ -304,6 +313,22 @@ class LocalSlam:
         return (math.hypot(pose[0] - predicted[0], pose[1] - predicted[1]) <= lin
                 and abs(math.remainder(pose[2] - predicted[2], 2 * math.pi)) <= ang)
 
+    def _reachable(self, pose, time_s) -> bool:
+        """Whether the robot can have got to ``pose`` by ``time_s``: within the distance its fastest
+        translation measured so far (``PoseExtrapolator.max_speed``) covers since the last trusted
+        match, plus the regular real-time window (what a trusted pose and a velocity measured from two
+        of them may be off by). Without odometry nothing else bounds a recovered peak that is no
+        trusted match: a scan that fits nowhere well (a person in front of the laser) peaks weakly
+        somewhere in the recovery window, metres from where the robot is, and inserted there it
+        corrupts the submap for the scans after it (fr079 with ``--no-odometry``, README). True
+        before the first trusted match."""
+        e = self.extrapolator
+        p0, t0 = e.measured_pose, e.measured_time
+        if time_s is None or p0 is None:
+            return True
+        reach = e.max_speed * max(time_s - t0, 0.0) + self.cfg.real_time_matcher.linear_search_window
+        return math.hypot(pose[0] - p0[0], pose[1] - p0[1]) <= reach
+
     def _error_bound(self, predicted) -> tuple[float, float]:
         """The prediction's error bound (m, rad) of ``_plausible_jump``."""
         motion = self.extrapolator.motion(predicted)
@@ -313,7 +338,7 @@ class LocalSlam:
         return lin + self.cfg.grid.resolution, ang  # the searches place poses on a lattice of cells
 
     def _takes_recovered(self, wide, m, predicted, limit, submap, grid, points, least: float = 0.0,
-                         odometry: bool = True) -> bool:
+                         odometry: bool = True, time_s: float | None = None) -> bool:
         """Whether the recovered match ``wide`` replaces ``m``, the real-time window's match around
         ``predicted`` (None: there is none). It must be trusted where ``m`` was not (``limit``; a
         wide window always holds some pose that scores a little higher, often a wrong one), beat
@@ -328,8 +353,9 @@ class LocalSlam:
         ``least`` (``_least_recovered_score``: the recovery search prunes below it, so pruning still
         changes no result). ``odometry`` False: ``predicted`` is the constant-velocity model's, an
         assumption rather than a measurement, with no error bound of its own (a robot that stopped
-        turning and drove off has left it behind by whatever it did since): the recovery window
-        alone bounds where such a peak may lie."""
+        turning and drove off has left it behind by whatever it did since): such a peak need not
+        lie near the prediction, only where the robot can have got to by ``time_s``
+        (``_reachable``)."""
         if wide is None:
             return False
         if m is None:
@@ -345,7 +371,7 @@ class LocalSlam:
         # ``limit``) where the prediction's own error bound holds it and it explains the scan
         # better than the prediction on the points both put on observed cells
         return (m.on_edge and not wide.on_edge and wide.score >= least
-                and (not odometry or self._plausible_jump(wide.pose, predicted))
+                and (self._plausible_jump(wide.pose, predicted) if odometry else self._reachable(wide.pose, time_s))
                 and self._scores_higher_where_observed(submap, grid, wide.pose, predicted, points))
 
     def _recovery_rotation(self, time_s: float, odometry: bool) -> float:
@@ -493,7 +519,7 @@ class LocalSlam:
                 timings["recovery"] = (time.perf_counter() - t_rec) * 1e3
                 self.num_recovery_searches += 1
                 if self._takes_recovered(wide, m, predicted, limit, submap, grid, points, least,
-                                         odometry=from_odometry):
+                                         odometry=from_odometry, time_s=scan.timestamp):
                     if self._unsupported_jump(wide, m, predicted, from_odometry):
                         # two explanations, neither decided: untrusted (the prediction, not inserted)
                         m.on_edge = True

@@ -739,6 +739,61 @@ def _feed(ex, stamps, poses, measured=None):
         ex.add(t, p, None, True if measured is None else measured[k])
 
 
+def test_without_odometry_a_recovered_peak_must_lie_where_the_robot_can_have_got_to():
+    """Without odometry the prediction is constant velocity, which bounds nothing; a clear recovered
+    peak below the trust limit replaces a search that found no peak only within the distance the
+    fastest speed measured so far covers since the last trusted match, plus the regular window: 3 m
+    off a robot measured at 0.5 m/s is out of reach 0.2 s later, within it after a 10 s pause."""
+    from types import SimpleNamespace
+
+    from slam2d.matching.real_time import MatchResult
+
+    g, mg, pts = _observed_world()
+    sub = SimpleNamespace(grid=g)
+    a, b = np.zeros(3), np.array([-3.0, 0.0, 0.0])   # the recovery's peak at A, the prediction at B
+    tracker = LocalSlam(config_from_dict({}), loop_closure=True)
+    stamps = [0.2 * k for k in range(10)]
+    _feed(tracker.extrapolator, stamps, [b + [0.5 * (t - stamps[-1]), 0.0, 0.0] for t in stamps])  # 0.5 m/s, at B
+    assert tracker.extrapolator.max_speed == pytest.approx(0.5)
+    edge = MatchResult(b, 0.6, 1, on_edge=True)
+    low = MatchResult(a, 0.5, 1)
+
+    def takes(dt, wide=low):
+        return tracker._takes_recovered(wide, edge, b, 0.7, sub, mg, pts, odometry=False, time_s=stamps[-1] + dt)
+
+    assert not takes(0.2)                              # 3 m in 0.2 s at 0.5 m/s: out of reach
+    assert takes(10.0)                                 # after a 10 s pause it can have got there
+    reach = 0.5 * 0.2 + tracker.cfg.real_time_matcher.linear_search_window
+    assert takes(0.2, MatchResult(b + [0.9 * reach, 0.0, 0.0], 0.5, 1)) == \
+        tracker._scores_higher_where_observed(sub, mg, b + [0.9 * reach, 0.0, 0.0], b, pts)
+    assert not takes(0.2, MatchResult(b + [1.1 * reach, 0.0, 0.0], 0.5, 1))
+
+
+def test_fr079_without_odometry_does_not_jump_to_a_weak_peak_a_metre_away():
+    """Real data: fr079 with ``--no-odometry``. At scan 4174 the real-time search ends on its window's
+    edge and the recovery's best peak (0.73, below the trust limit) lies 0.9 m from the last trusted
+    pose 0.21 s before, more than twice what the fastest speed measured so far covers. Taken (before
+    the reach rule), it was inserted there and the next ten scans matched that misplaced content,
+    0.6 m and 20° off, until a recovery jumped back; runs that differed in the last bits then mapped
+    the end of the log broken (README). Now no step around it is faster than 1.5 m/s."""
+    from conftest import dataset
+    from slam2d.geometry import between
+    from slam2d.io.source import open_source
+
+    cfg = config_from_dict({})
+    cfg.real_time_matcher.use_odometry = False
+    tracker = LocalSlam(cfg, loop_closure=True)
+    poses, stamps = [], []
+    for i, s in enumerate(open_source(dataset("fr079"))):
+        if i > 4190:
+            break
+        poses.append(tracker.add_scan(s).local_pose)
+        stamps.append(s.timestamp)
+    for i in range(4165, 4190):
+        step = between(poses[i], poses[i + 1])
+        assert np.hypot(step[0], step[1]) < 1.5 * (stamps[i + 1] - stamps[i]), (i, step)
+
+
 def test_constant_twist_is_predicted_exactly():
     """A robot on a circle at a constant twist: the motion between two poses in the older one's frame,
     applied from the newest, is the next step."""
