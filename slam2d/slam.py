@@ -38,6 +38,7 @@ from slam2d.geometry import between, compose
 from slam2d.grid.map_builder import build_map
 from slam2d.grid.probability_grid import ProbabilityGrid
 from slam2d.observer import Observer
+from slam2d.spill import ArraySpill
 from slam2d.threads import CallerCores
 from slam2d.types import Estimate, Node, Scan
 
@@ -170,9 +171,13 @@ class Slam:
         self._times = array("d")
         self._local = array("d")  # x, y, θ of every scan, one after the other
         self._ground_truth: list = []
+        # what the end of the run needs of every scan goes to disk as it comes (``spill``): the range
+        # data of each node (the map, the health report) and the points each scan matched (the final
+        # refinement); ``nodes`` is filled from it in ``finish``, once the solver process has gone
+        self._node_spill = ArraySpill(4)  # hits, misses, origin, (x, y, θ, scan index, time, far misses)
         self.nodes: list[Node] = []
         self._keep_points = self.global_slam is not None and cfg.final_refinement.enabled
-        self._points: list[np.ndarray | None] = []
+        self._points = ArraySpill(1)
         self._stage_ms: dict[str, array] = {}  # per stage, its time in every call [ms]
         self._counts = {"scans": 0, "nodes": 0, "invalid_readings": 0, "no_return_readings": 0, "readings": 0,
                         "timestamp_reversals": 0, "beams_min": None, "beams_max": None}
@@ -228,7 +233,9 @@ class Slam:
                 self._global(gs.add_finished_submap, sub)
             self._stage("global", (time.perf_counter() - t1) * 1e3)
         if res.inserted:
-            self.nodes.append(Node.of(i, scan.timestamp, res.local_pose, res.range_data))
+            n = Node.of(i, scan.timestamp, res.local_pose, res.range_data)
+            self._node_spill.append(n.hits, n.misses, n.origin,
+                                    np.array([*n.local_pose, n.scan_index, n.time, n.far_misses], dtype=np.float64))
         self.observer.on_scan(scan, res)
         glob = local.copy() if gs is None else compose(gs.correction, local)
         c_end = time.thread_time()  # read inside the wall interval, so the CPU time never exceeds it
@@ -285,7 +292,7 @@ class Slam:
             raise InputError(self.source_name, "no scans")
         self._finished = True
         cfg = self.config
-        self._counts["nodes"] = len(self.nodes)
+        self._counts["nodes"] = len(self._node_spill)
         poses = np.array(self._local, dtype=float).reshape(-1, 3)
         gs = self.global_slam
         if self._background is not None:
@@ -305,6 +312,8 @@ class Slam:
             poses = globalize(poses, gs.finish())
             self._stage_ms["final_optimization"] = [(time.perf_counter() - t1) * 1e3]
         return_freed_memory()
+        self.nodes = self._spilled_nodes()
+        self._node_spill.close()
         t_map = time.perf_counter()
         node_poses = {n.scan_index: poses[n.scan_index] for n in self.nodes} if gs is not None else None
         grid = build_map(cfg, self.nodes, node_poses)
@@ -315,7 +324,7 @@ class Slam:
             t1 = time.perf_counter()
             fr = cfg.final_refinement
             points = self._refinement_points()
-            self._points = []
+            self._points.close()
             poses = refine_trajectory(grid, poses, points, fr.translation_weight, fr.rotation_weight,
                                       cfg.refine.max_iterations, cfg.refine.occupied_space_weight)
             self._stage_ms["final_refinement"] = [(time.perf_counter() - t1) * 1e3]
@@ -326,10 +335,15 @@ class Slam:
         kernel_cache.remember(self._kernels_before)
         return result
 
+    def _spilled_nodes(self) -> list[Node]:
+        """The nodes so far, read back from ``_node_spill``."""
+        return [Node(int(m[3]), float(m[4]), m[:3].copy(), hits, misses, origin, int(m[5]))
+                for hits, misses, origin, m in self._node_spill.records()]
+
     def _refinement_points(self) -> list[np.ndarray | None]:
         """Every scan's matched points (float32) for the final refinement, as ``_kept_points`` kept them."""
-        hits = {n.scan_index: n.hits for n in self.nodes}
-        return [p if p is None or p.ndim == 2 else hits[i][p] for i, p in enumerate(self._points)]
+        hits = {n.scan_index: n.hits for n in (self.nodes or self._spilled_nodes())}
+        return [p if p is None or p.ndim == 2 else hits[i][p] for i, (p,) in enumerate(self._points.records())]
 
     # ---- bookkeeping
     def _stage(self, name, ms):

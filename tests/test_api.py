@@ -209,7 +209,7 @@ def test_refinement_points_kept_compactly_are_the_matched_points():
     slam.sync()
     got = slam._refinement_points()
     assert len(got) == 300
-    kinds = {p.ndim for p in slam._points if p is not None}
+    kinds = {p.ndim for (p,) in slam._points.records() if p is not None}
     assert kinds == {1, 2}  # some scans kept as indices (nodes), others as points
     # the same scans once more through local SLAM alone: the points it matched (they depend on the scan only)
     again = slam2d.Slam(mode="local")
