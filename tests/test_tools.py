@@ -123,7 +123,8 @@ def test_benchmark_runs_every_suite_on_tiny_logs(tmp_path):
                        capture_output=True, text=True, cwd=ROOT, timeout=900)
     assert r.returncode == 0, r.stderr
     md = (tmp_path / "B.md").read_text()
-    for heading in ("## Relations logs", "## Degraded odometry", "## Dropped beams", "## Fewer scans", "## Without odometry",
+    for heading in ("## Relations logs", "## Degraded odometry", "## Dropped beams", "## Fewer scans", "## Harsh odometry",
+                    "## Without odometry",
                     "## Sparse logs",
                     "## fr-clinic", "## Simulated sensors and robots"):
         assert heading in md
@@ -136,6 +137,15 @@ def test_benchmark_runs_every_suite_on_tiny_logs(tmp_path):
     assert [row["dataset"] for row in th] == ["tiny"] and th[0]["slam2d"]["scans"] == 20
     assert th[0]["slam2d"]["vs_full_log"]["pairs"] == 20 and "relations_exact" in th[0]["slam2d"]
     assert list((tmp_path / "cache").glob("degrade-seed1-*/tiny-every5/tiny.clf"))
+    # the harsh copies: every log at every rate and seed, each against the whole log's run
+    ha = b["harsh"]
+    assert [(row["dataset"], row["keep_every"], row["seed"]) for row in ha] == [("tiny", 1, 4), ("tiny", 1, 5),
+                                                                                   ("tiny", 3, 4), ("tiny", 3, 5)]
+    assert [row["slam2d"]["scans"] for row in ha] == [100, 100, 33, 33]
+    assert all(row["slam2d"]["vs_full_log"]["pairs"] == row["slam2d"]["scans"] for row in ha)
+    assert all("relations_exact" in row["slam2d"] for row in ha)
+    assert list((tmp_path / "cache").glob("degrade-seed5-*/tiny-harsh-every3/tiny.clf"))
+    assert "## Harsh odometry" in md and "| tiny | 3 | 5 | slam2d" in md
     # the relations logs (the speed targets) are timed --speed-repeat times, the other suites once
     assert len(b["rows"][0]["slam2d"]["wall_s_runs"]) == 2 and len(b["degraded"][0]["slam2d"]["wall_s_runs"]) == 1
     assert "median wall time and largest peak of 2 runs" in md

@@ -82,6 +82,27 @@ def thinned_log(args, name: str) -> Path:
     return degraded_log(args, name, keep_every=KEEP_EVERY)
 
 
+#: the harsh copies: ``degrade.py``'s odometry model with these rotation and translation scales (its
+#: defaults: 0.15 and 0.03), so that a turn's odometry can miss most of the turn, at each of these rates
+#: (one scan in N kept) and seeds
+HARSH_ODOMETRY = {"rot_scale": 0.5, "trans_scale": 0.1}
+HARSH_KEEP_EVERY = (1, 3)
+HARSH_SEEDS = (4, 5)
+
+
+def harsh_log(args, name: str, seed: int, keep_every: int = 1) -> Path:
+    """``degrade.py IN OUT --seed SEED --rot-scale 0.5 --trans-scale 0.1 [--keep-every N]`` of a relations
+    log, cached: odometry far worse than the degraded copies' (a turn's rotation scaled by 1 + k, k of
+    σ 0.5: a turn read as half or a quarter of itself), at the full rate or a lower one."""
+    tool = args.shared / "tools" / "degrade.py"
+    log = args.shared / "datasets" / name / f"{name}.clf.bz2"
+    extra = ["--rot-scale", HARSH_ODOMETRY["rot_scale"], "--trans-scale", HARSH_ODOMETRY["trans_scale"]]
+    extra += ["--keep-every", keep_every] if keep_every > 1 else []
+    d = cached(args.cache, tool, seed, f"{name}-harsh-every{keep_every}", log,
+               lambda tmp: _tool([tool, log, tmp / f"{name}.clf", "--seed", seed, *extra]))
+    return d / f"{name}.clf"
+
+
 def corrected_logs(datasets: Path) -> list[tuple[str, Path]]:
     """(dataset folder name, path) of every GMapping-corrected log under ``datasets``."""
     pat = re.compile(r"(\.gfs\.log|-corrected\.log(\.gz)?)$")

@@ -128,6 +128,22 @@ def thinned_table(rows) -> str:
     return "\n".join(lines)
 
 
+def harsh_table(rows) -> str:
+    """The harsh copies: one row per log, rate and seed (slam2d, then the peer), against slam2d's run
+    of the whole raw log and on the relations whose two stamps the copy keeps."""
+    lines = ["| dataset (harsh odometry) | one scan in | seed | system | scans | wall s | vs slam2d's run of the whole log: ATE RMSE / max m | its rot RMSE ° | relations at kept stamps: n; trans abs m (mean ± std); rot abs ° (mean) | loops accepted / final / searched | health |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for row in rows:
+        n, s, keep, seed = row["dataset"], row["slam2d"], row["keep_every"], row["seed"]
+        lines.append(f"| {n} | {keep} | {seed} | slam2d ({s['mode']}) | {s['scans']} | {s['wall_s']:.1f} | "
+                     f"{_vs_full(s.get('vs_full_log'))} | {_rel_exact(s.get('relations_exact'))} | {loops_txt(s)} | {health_txt(s)} |")
+        k = row.get("karto", {})
+        if "trajectory" in k:
+            lines.append(f"| {n} | {keep} | {seed} | Karto peer (sequential) | {s['scans']} | {k['wall_s']:.1f} | "
+                         f"{_vs_full(k.get('vs_full_log'))} | {_rel_exact(k.get('relations_exact'))} | — | |")
+    return "\n".join(lines)
+
+
 def sparse_table(rows) -> str:
     target = TARGETS["sparse_ate_rmse_m"]
     lines = [f"| dataset (sparse) | system | scans | wall s | peak RSS MB | ATE RMSE m | target ≤ {target} m | met | scale (Sim(2)); ATE RMSE after it m | ATE RMSE over the seeds: median (min–max) m; seeds whose health is not OK | loops accepted / final / searched | loop precision vs ground truth, final graph (all accepted; the other seeds' final graphs) | its misses, by the raw scans: loop right / truth right / undecided | loop precision vs slam2d's run of the raw log, final graph (the other seeds') | recall (revisit episodes closed) | free-space violation, all scans / revisits: slam2d; ground truth; disputed scans | health |",

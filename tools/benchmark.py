@@ -16,6 +16,9 @@ Suites (issue 11), all in one run by default, `--suite` selects some:
              of the scan rate, tens of degrees between the scans of a fast turn); their agreement
              with slam2d's run of the whole raw log (the relations suite's), and the relations whose
              two stamps are both scans of the thinned log;
+  harsh      odometry far worse than `degraded`'s (`degrade.py ... --rot-scale 0.5 --trans-scale 0.1`,
+             seeds 4 and 5, every scan and one in three): where the default config stands beyond the
+             logs it was measured on; scored as `thinned` is;
   no-odometry  the same logs run with `slam2d run --no-odometry` (odometry is optional), relations;
   sparse     `../shared/tools/make_sparse.py OUTDIR LOG --seed 7` of every corrected log found in
              ../shared/datasets (`*.gfs.log`, `*-corrected.log*`, any depth); ATE RMSE and loop
@@ -60,14 +63,15 @@ sys.path.insert(0, str(ROOT))
 
 sys.path.insert(0, str(ROOT / "tools"))
 
-from bench_logs import (BEAM_DROPOUT, KEEP_EVERY, SIM_VARIANTS, corrected_logs, default_cache, degraded_log,  # noqa: E402
-                        dropout_log, sim_log, sparse_log, thinned_log)
-from bench_tables import (TARGETS, clinic_table, degraded_table, simulated_table, sparse_table, table,  # noqa: E402
-                          thinned_table)
+from bench_logs import (BEAM_DROPOUT, HARSH_KEEP_EVERY, HARSH_ODOMETRY, HARSH_SEEDS, KEEP_EVERY,  # noqa: E402
+                        SIM_VARIANTS, corrected_logs, default_cache, degraded_log, dropout_log, harsh_log, sim_log,
+                        sparse_log, thinned_log)
+from bench_tables import (TARGETS, clinic_table, degraded_table, harsh_table, simulated_table, sparse_table,  # noqa: E402
+                          table, thinned_table)
 
 SHARED = ROOT.parent / "shared"
 REFERENCE_LOGS = {"intel": "intel.gfs.log", "aces": "aces-corrected.log.gz", "fr079": "freiburg-079-corrected.log.gz"}
-SUITES = ("relations", "degraded", "dropout", "thinned", "no-odometry", "sparse", "clinic", "simulated")
+SUITES = ("relations", "degraded", "dropout", "thinned", "harsh", "no-odometry", "sparse", "clinic", "simulated")
 LOOP_TOLERANCE = (0.3, 2.0)  # m, deg: slam2d eval loops --ground-truth defaults
 
 
@@ -324,13 +328,27 @@ def bench_thinned(name: str, log: Path, args, outdir: Path) -> dict:
     return row
 
 
+def bench_harsh(name: str, log: Path, keep_every: int, seed: int, args, outdir: Path) -> dict:
+    """A harsh copy (``harsh_log``): the relations whose two stamps are both scans of it; its agreement
+    with slam2d's run of the whole log is added once every run is done (``thinned_agreement``)."""
+    rel = args.shared / "datasets" / name / f"{name}.relations"
+    label = f"harsh-{name}-every{keep_every}-seed{seed}"
+    row = run_log(label, log, args, outdir)
+    row.update({"dataset": name, "label": label, "keep_every": keep_every, "seed": seed})
+    row["slam2d"]["relations_exact"] = relations_of(outdir / label / "trajectory.txt", rel, exact=True)
+    if "trajectory" in row.get("karto", {}):
+        row["karto"]["relations_exact"] = relations_of(Path(row["karto"]["trajectory"]), rel, exact=True)
+    return row
+
+
 def thinned_agreement(row: dict, runs: Path) -> None:
-    """The thinned log's runs (slam2d's, the peer's) against slam2d's run of the whole raw log in this
-    benchmark (``runs/NAME``), where there is one."""
+    """A thinned (or harsh) log's runs (slam2d's, the peer's) against slam2d's run of the whole raw log
+    in this benchmark (``runs/NAME``), where there is one."""
     full = runs / row["dataset"] / "trajectory.txt"
     if not full.exists():
         return
-    row["slam2d"]["vs_full_log"] = agreement_with(runs / f"thinned-{row['dataset']}" / "trajectory.txt", full)
+    label = row.get("label", f"thinned-{row['dataset']}")
+    row["slam2d"]["vs_full_log"] = agreement_with(runs / label / "trajectory.txt", full)
     if "trajectory" in row.get("karto", {}):
         row["karto"]["vs_full_log"] = agreement_with(Path(row["karto"]["trajectory"]), full)
 
@@ -527,6 +545,12 @@ def main(argv=None) -> int:
         for n in relation_names:
             log = thinned_log(args, n)
             jobs.append(("thinned", log, lambda n=n, log=log: bench_thinned(n, log, args, runs)))
+    if "harsh" in suites:
+        for n in relation_names:
+            for every in HARSH_KEEP_EVERY:
+                for seed in HARSH_SEEDS:
+                    log = harsh_log(args, n, seed, every)
+                    jobs.append(("harsh", log, lambda n=n, log=log, k=every, sd=seed: bench_harsh(n, log, k, sd, args, runs)))
     if "no-odometry" in suites:
         jobs += [("no-odometry", datasets / n / f"{n}.clf.bz2", lambda n=n: bench_no_odometry(n, args, runs))
                  for n in relation_names]
@@ -552,7 +576,7 @@ def main(argv=None) -> int:
     by_suite = {s: [row for k, row in done if k == s] for s in SUITES}
     for row in by_suite["sparse"]:
         loops_vs_dense_run(row, datasets, runs)
-    for row in by_suite["thinned"]:
+    for row in by_suite["thinned"] + by_suite["harsh"]:
         thinned_agreement(row, runs)
     rows = by_suite["relations"]
     for row in rows:
@@ -567,7 +591,7 @@ def main(argv=None) -> int:
             "cache": str(args.cache),
             "targets": TARGETS}
     Path(args.json).write_text(json.dumps({"meta": meta, "rows": rows, "degraded": by_suite["degraded"],
-                                           "dropout": by_suite["dropout"], "thinned": by_suite["thinned"],
+                                           "dropout": by_suite["dropout"], "thinned": by_suite["thinned"], "harsh": by_suite["harsh"],
                                            "no_odometry": by_suite["no-odometry"], "sparse": by_suite["sparse"], "clinic": by_suite["clinic"],
                                            "simulated": by_suite["simulated"]},
                                           indent=2, default=float) + "\n")
@@ -617,6 +641,18 @@ def main(argv=None) -> int:
                "relations metric over the relations whose two stamps are both scans of the thinned log (few: "
                "interpolating across the dropped scans would measure the interpolation, not the SLAM).", "",
                thinned_table(by_suite["thinned"]), ""]
+    if "harsh" in suites:
+        md += ["## Harsh odometry", "",
+               f"`degrade.py IN OUT --seed S --rot-scale {HARSH_ODOMETRY['rot_scale']} --trans-scale "
+               f"{HARSH_ODOMETRY['trans_scale']} [--keep-every N]` of each relations log, seeds "
+               f"{', '.join(map(str, HARSH_SEEDS))}, every scan and one in {', '.join(map(str, HARSH_KEEP_EVERY[1:]))}: "
+               "odometry far worse than the degraded copies' (each turn's rotation scaled by 1 + k, k drawn with "
+               f"σ {HARSH_ODOMETRY['rot_scale']}: a turn read as half of itself, or hardly at all), as a robot whose "
+               "wheels slip in fast turns. No targets: where the default config stands beyond the logs it was "
+               "measured on, and whether the health report says so where it fails. Each run against slam2d's run "
+               "of the whole raw log above (ATE after SE(2) alignment over the scans the copy keeps), and the "
+               "relations metric over the relations whose two stamps are both scans of the copy.", "",
+               harsh_table(by_suite["harsh"]), ""]
     if "no-odometry" in suites:
         md += ["## Without odometry", "",
                "The relations logs run with `--no-odometry` (the log's wheel odometry ignored; each scan predicted "
