@@ -118,14 +118,23 @@ def thinned_table(rows) -> str:
     lines = ["| dataset (thinned) | system | scans | wall s | peak RSS MB | vs slam2d's run of the whole log: ATE RMSE / max m | its rot RMSE ° | relations at kept stamps: n; trans abs m (mean ± std); rot abs ° (mean) | loops accepted / final / searched | health |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
-        n, s = row["dataset"], row["slam2d"]
-        lines.append(f"| {n} | slam2d ({s['mode']}) | {s['scans']} | {s['wall_s']:.1f} | {s['peak_rss_mb']:.0f} | "
-                     f"{_vs_full(s.get('vs_full_log'))} | {_rel_exact(s.get('relations_exact'))} | {loops_txt(s)} | {health_txt(s)} |")
-        k = row.get("karto", {})
-        if "trajectory" in k:
-            lines.append(f"| {n} | Karto peer (sequential) | {s['scans']} | {k['wall_s']:.1f} | {k['peak_rss_mb']:.0f} | "
-                         f"{_vs_full(k.get('vs_full_log'))} | {_rel_exact(k.get('relations_exact'))} | — | |")
+        lines += _vs_full_rows(row["dataset"], row)
     return "\n".join(lines)
+
+
+def _vs_full_rows(lead: str, row, rss: bool = True) -> list[str]:
+    """A thinned or harsh copy's lines (slam2d's, then the peer's): ``lead``, the leading cells; the
+    run against slam2d's run of the whole log, the relations at kept stamps, loops and health
+    (``rss``: with a peak RSS column after the wall time)."""
+    s, k = row["slam2d"], row.get("karto", {})
+
+    def mid(r):
+        return f"{r['wall_s']:.1f} | " + (f"{r['peak_rss_mb']:.0f} | " if rss else "") + \
+            f"{_vs_full(r.get('vs_full_log'))} | {_rel_exact(r.get('relations_exact'))}"
+    lines = [f"| {lead} | slam2d ({s['mode']}) | {s['scans']} | {mid(s)} | {loops_txt(s)} | {health_txt(s)} |"]
+    if "trajectory" in k:
+        lines.append(f"| {lead} | Karto peer (sequential) | {s['scans']} | {mid(k)} | — | |")
+    return lines
 
 
 def harsh_table(rows) -> str:
@@ -134,13 +143,7 @@ def harsh_table(rows) -> str:
     lines = ["| dataset (harsh odometry) | one scan in | seed | system | scans | wall s | vs slam2d's run of the whole log: ATE RMSE / max m | its rot RMSE ° | relations at kept stamps: n; trans abs m (mean ± std); rot abs ° (mean) | loops accepted / final / searched | health |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
-        n, s, keep, seed = row["dataset"], row["slam2d"], row["keep_every"], row["seed"]
-        lines.append(f"| {n} | {keep} | {seed} | slam2d ({s['mode']}) | {s['scans']} | {s['wall_s']:.1f} | "
-                     f"{_vs_full(s.get('vs_full_log'))} | {_rel_exact(s.get('relations_exact'))} | {loops_txt(s)} | {health_txt(s)} |")
-        k = row.get("karto", {})
-        if "trajectory" in k:
-            lines.append(f"| {n} | {keep} | {seed} | Karto peer (sequential) | {s['scans']} | {k['wall_s']:.1f} | "
-                         f"{_vs_full(k.get('vs_full_log'))} | {_rel_exact(k.get('relations_exact'))} | — | |")
+        lines += _vs_full_rows(f"{row['dataset']} | {row['keep_every']} | {row['seed']}", row, rss=False)
     return "\n".join(lines)
 
 
