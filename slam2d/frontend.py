@@ -313,6 +313,18 @@ class LocalSlam:
         return (math.hypot(pose[0] - predicted[0], pose[1] - predicted[1]) <= lin
                 and abs(math.remainder(pose[2] - predicted[2], 2 * math.pi)) <= ang)
 
+    def _predicted_by_either(self, pose, predicted, time_s) -> bool:
+        """Whether ``pose`` lies within the error bound (``_plausible_jump``) of the odometry's
+        prediction ``predicted`` or of constant velocity's, the recovery's second prediction, at
+        ``time_s``. The odometry's bound grows with the motion it read: where the wheels stop
+        registering a turn the robot goes on making (they slip in a fast turn), it stays as small as
+        that reading while the pose turns away from it. The turn's own pace, from the last trusted
+        matches, predicts the pose then, and its bound grows with that turn."""
+        if self._plausible_jump(pose, predicted):
+            return True
+        ex = self.extrapolator
+        return ex.last_pose is not None and time_s is not None and self._plausible_jump(pose, ex.predict(time_s, None))
+
     def _reachable(self, pose, time_s) -> bool:
         """Whether the robot can have got to ``pose`` by ``time_s``: within the distance its fastest
         translation measured so far (``PoseExtrapolator.max_speed``) covers since the last trusted
@@ -348,7 +360,8 @@ class LocalSlam:
         as it does within the window), and beat ``m`` on the points both put on observed cells
         (a wide window holds poses that score higher only by laying new ground onto mapped cells).
         Where ``m`` is no peak (on its window's edge), a clear recovered peak that fails this also
-        replaces the prediction, within the prediction's error bound (``_plausible_jump``), if it
+        replaces the prediction, within the error bound of the odometry's prediction or of constant
+        velocity's (``_predicted_by_either``), if it
         beats the prediction itself on the points both put on observed cells and scores at least
         ``least`` (``_least_recovered_score``: the recovery search prunes below it, so pruning still
         changes no result). ``odometry`` False: ``predicted`` is the constant-velocity model's, an
@@ -368,10 +381,12 @@ class LocalSlam:
         # off, typically a fast turn whose odometry slipped beyond the largest rotation window, and a
         # turn shows new ground, so its right pose scores below ``limit`` (the slope ``m`` climbed
         # can also outscore it). A clear peak there replaces the prediction (a weak match below
-        # ``limit``) where the prediction's own error bound holds it and it explains the scan
-        # better than the prediction on the points both put on observed cells
+        # ``limit``) where the error bound of the odometry's prediction or of constant velocity's
+        # holds it and it explains the scan better than the prediction on the points both put on
+        # observed cells
         return (m.on_edge and not wide.on_edge and wide.score >= least
-                and (self._plausible_jump(wide.pose, predicted) if odometry else self._reachable(wide.pose, time_s))
+                and (self._predicted_by_either(wide.pose, predicted, time_s) if odometry
+                     else self._reachable(wide.pose, time_s))
                 and self._scores_higher_where_observed(submap, grid, wide.pose, predicted, points))
 
     def _recovery_rotation(self, time_s: float, odometry: bool) -> float:

@@ -769,6 +769,33 @@ def test_without_odometry_a_recovered_peak_must_lie_where_the_robot_can_have_got
     assert not takes(0.2, MatchResult(b + [1.1 * reach, 0.0, 0.0], 0.5, 1))
 
 
+def test_a_recovered_turn_the_odometry_missed_lies_within_constant_velocity_s_bound():
+    """A robot turning at 0.6 rad/s whose wheels stop registering the turn: the odometry predicts the
+    next scan straight ahead, and its error bound (grown by the motion it read) holds barely 2°.
+    Constant velocity, from the trusted matches, predicts the turn going on, 17° further, and its
+    bound grows with that turn: a clear recovered peak where the turn went on is plausible, one as
+    far the other way, or well beyond where the turn can have gone, is not."""
+    tracker = LocalSlam(config_from_dict({}), loop_closure=True)
+    twist = np.array([0.3, 0.0, 0.6])  # per second
+    stamps = [0.5 * k for k in range(10)]
+    poses = [np.zeros(3)]
+    for _ in stamps[1:]:
+        poses.append(compose(poses[-1], twist * 0.5))
+    _feed(tracker.extrapolator, stamps, poses)
+    t = stamps[-1] + 0.5
+    odometry = compose(poses[-1], np.array([0.15, 0.0, 0.0]))  # the wheels read no turn
+    turned = tracker.extrapolator.predict(t, None)
+    np.testing.assert_allclose(turned, compose(poses[-1], twist * 0.5), atol=1e-9)
+    assert not tracker._plausible_jump(turned, odometry)  # the odometry's bound alone rules it out
+    assert tracker._predicted_by_either(turned, odometry, t)
+    assert tracker._predicted_by_either(odometry, odometry, t)
+    other_way = compose(odometry, np.array([0.0, 0.0, -0.3]))
+    assert not tracker._predicted_by_either(other_way, odometry, t)
+    beyond = compose(turned, np.array([0.0, 0.0, 0.35]))  # 20° past constant velocity's prediction
+    assert not tracker._predicted_by_either(beyond, odometry, t)
+    assert not LocalSlam(config_from_dict({}), loop_closure=True)._predicted_by_either(turned, odometry, t)  # no history
+
+
 def test_fr079_without_odometry_does_not_jump_to_a_weak_peak_a_metre_away():
     """Real data: fr079 with ``--no-odometry``. At scan 4174 the real-time search ends on its window's
     edge and the recovery's best peak (0.73, below the trust limit) lies 0.9 m from the last trusted
