@@ -54,19 +54,23 @@ BEAM_DROPOUT = 0.3
 KEEP_EVERY = 5
 
 
-def degraded_log(args, name: str, beam_dropout: float = 0.0, keep_every: int = 1) -> Path:
+def degraded_log(args, name: str, beam_dropout: float = 0.0, keep_every: int = 1, seed: int | None = None,
+                 odometry: dict | None = None) -> Path:
     """``degrade.py IN OUT --seed 1`` (its default odometry model) of a relations log, cached; with
     ``beam_dropout``, also that share of readings replaced by the log's no-return value
     (``--beam-dropout``), with ``keep_every``, only every that many-th scan kept (``--keep-every``),
-    each in a folder of its own."""
+    with ``seed`` another seed than ``--degrade-seed``, with ``odometry`` (``HARSH_ODOMETRY``) its
+    ``--rot-scale`` and ``--trans-scale``, each in a folder of its own."""
     tool = args.shared / "tools" / "degrade.py"
     log = args.shared / "datasets" / name / f"{name}.clf.bz2"
-    extra = ["--beam-dropout", beam_dropout] if beam_dropout else []
+    seed = args.degrade_seed if seed is None else seed
+    extra = ["--rot-scale", odometry["rot_scale"], "--trans-scale", odometry["trans_scale"]] if odometry else []
+    extra += ["--beam-dropout", beam_dropout] if beam_dropout else []
     extra += ["--keep-every", keep_every] if keep_every > 1 else []
-    folder = name + (f"-dropout{round(beam_dropout * 100)}" if beam_dropout else "") + (
+    folder = name + ("-harsh" if odometry else "") + (f"-dropout{round(beam_dropout * 100)}" if beam_dropout else "") + (
         f"-every{keep_every}" if keep_every > 1 else "")
-    d = cached(args.cache, tool, args.degrade_seed, folder, log,
-               lambda tmp: _tool([tool, log, tmp / f"{name}.clf", "--seed", args.degrade_seed, *extra]))
+    d = cached(args.cache, tool, seed, folder, log,
+               lambda tmp: _tool([tool, log, tmp / f"{name}.clf", "--seed", seed, *extra]))
     return d / f"{name}.clf"
 
 
@@ -93,14 +97,8 @@ HARSH_SEEDS = (4, 5)
 def harsh_log(args, name: str, seed: int, keep_every: int = 1) -> Path:
     """``degrade.py IN OUT --seed SEED --rot-scale 0.5 --trans-scale 0.1 [--keep-every N]`` of a relations
     log, cached: odometry far worse than the degraded copies' (a turn's rotation scaled by 1 + k, k of
-    σ 0.5: a turn read as half or a quarter of itself), at the full rate or a lower one."""
-    tool = args.shared / "tools" / "degrade.py"
-    log = args.shared / "datasets" / name / f"{name}.clf.bz2"
-    extra = ["--rot-scale", HARSH_ODOMETRY["rot_scale"], "--trans-scale", HARSH_ODOMETRY["trans_scale"]]
-    extra += ["--keep-every", keep_every] if keep_every > 1 else []
-    d = cached(args.cache, tool, seed, f"{name}-harsh-every{keep_every}", log,
-               lambda tmp: _tool([tool, log, tmp / f"{name}.clf", "--seed", seed, *extra]))
-    return d / f"{name}.clf"
+    σ 0.5: a turn read as half of itself, or hardly at all), at the full rate or a lower one."""
+    return degraded_log(args, name, keep_every=keep_every, seed=seed, odometry=HARSH_ODOMETRY)
 
 
 def corrected_logs(datasets: Path) -> list[tuple[str, Path]]:

@@ -315,29 +315,25 @@ def bench_degraded(name: str, log: Path, args, outdir: Path, kind: str = "degrad
     return row
 
 
-def bench_thinned(name: str, log: Path, args, outdir: Path) -> dict:
-    """A thinned degraded log: the relations whose two stamps are both scans of it (interpolating
-    across the dropped scans would measure the interpolation); its agreement with slam2d's run of
-    the whole log is added once every run is done (``thinned_agreement``)."""
+def bench_thinned(name: str, log: Path, args, outdir: Path, label: str | None = None) -> dict:
+    """A thinned degraded log (run folder ``label``, default ``thinned-NAME``): the relations whose two
+    stamps are both scans of it (interpolating across the dropped scans would measure the
+    interpolation); its agreement with slam2d's run of the whole log is added once every run is
+    done (``thinned_agreement``)."""
     rel = args.shared / "datasets" / name / f"{name}.relations"
-    row = run_log(f"thinned-{name}", log, args, outdir)
-    row["dataset"] = name
-    row["slam2d"]["relations_exact"] = relations_of(outdir / f"thinned-{name}" / "trajectory.txt", rel, exact=True)
+    label = label or f"thinned-{name}"
+    row = run_log(label, log, args, outdir)
+    row.update({"dataset": name, "label": label})
+    row["slam2d"]["relations_exact"] = relations_of(outdir / label / "trajectory.txt", rel, exact=True)
     if "trajectory" in row.get("karto", {}):
         row["karto"]["relations_exact"] = relations_of(Path(row["karto"]["trajectory"]), rel, exact=True)
     return row
 
 
 def bench_harsh(name: str, log: Path, keep_every: int, seed: int, args, outdir: Path) -> dict:
-    """A harsh copy (``harsh_log``): the relations whose two stamps are both scans of it; its agreement
-    with slam2d's run of the whole log is added once every run is done (``thinned_agreement``)."""
-    rel = args.shared / "datasets" / name / f"{name}.relations"
-    label = f"harsh-{name}-every{keep_every}-seed{seed}"
-    row = run_log(label, log, args, outdir)
-    row.update({"dataset": name, "label": label, "keep_every": keep_every, "seed": seed})
-    row["slam2d"]["relations_exact"] = relations_of(outdir / label / "trajectory.txt", rel, exact=True)
-    if "trajectory" in row.get("karto", {}):
-        row["karto"]["relations_exact"] = relations_of(Path(row["karto"]["trajectory"]), rel, exact=True)
+    """A harsh copy (``harsh_log``), scored as a thinned one is (``bench_thinned``)."""
+    row = bench_thinned(name, log, args, outdir, f"harsh-{name}-every{keep_every}-seed{seed}")
+    row.update({"keep_every": keep_every, "seed": seed})
     return row
 
 
@@ -347,8 +343,7 @@ def thinned_agreement(row: dict, runs: Path) -> None:
     full = runs / row["dataset"] / "trajectory.txt"
     if not full.exists():
         return
-    label = row.get("label", f"thinned-{row['dataset']}")
-    row["slam2d"]["vs_full_log"] = agreement_with(runs / label / "trajectory.txt", full)
+    row["slam2d"]["vs_full_log"] = agreement_with(runs / row["label"] / "trajectory.txt", full)
     if "trajectory" in row.get("karto", {}):
         row["karto"]["vs_full_log"] = agreement_with(Path(row["karto"]["trajectory"]), full)
 
