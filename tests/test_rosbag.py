@@ -1,10 +1,12 @@
 """ROS 1 / ROS 2 bags through rosbags: round trips, reading by name, topic choice, the TF-chain
 mount (bags and MCAP alike), and bad input as one line."""
+import json
 import logging
 import math
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from slam2d.cli import main
 from slam2d.errors import InputError
@@ -203,3 +205,74 @@ def test_yaw_and_angles_read_back_exactly():
             assert laser_angle(float(np.float32(v)), n) == v
     odd = float(np.float32(0.0123456789))
     assert abs(laser_angle(odd, 100) - odd) < 1e-9
+
+
+
+def _upside_down_bag(path, scans, kind, yaw_deg):
+    """The simulator's scans (360 beams, one a degree from -180°) as a laser hanging upside down on
+    the robot records them: its TF mount is rolled by 180° and turned by ``yaw_deg``, so its beam at
+    laser angle b looks along yaw - b in the robot's plane."""
+    from slam2d.io.mcap import scan_messages
+
+    n = scans[0].num_beams
+    order = (yaw_deg - np.arange(n)) % n  # the upright scan's beam that each upside-down beam repeats
+    yaw = math.radians(yaw_deg)
+    w = RosbagWriter(path, kind)
+    for k, s in enumerate(scans):
+        for topic, type_name, msg, sec, nsec in scan_messages(s, with_mount=False):
+            if type_name == "sensor_msgs/LaserScan":
+                if k == 0:
+                    w.write("/tf_static", "tf2_msgs/TFMessage", {"transforms": [{
+                        "header": {"stamp": {"sec": sec, "nanosec": nsec}, "frame_id": "base_link"},
+                        "child_frame_id": "laser",
+                        "transform": {"translation": {"x": 0.1, "y": 0.0, "z": 0.4},  # roll π, then the yaw
+                                      "rotation": {"x": math.cos(yaw / 2), "y": math.sin(yaw / 2), "z": 0.0,
+                                                   "w": 0.0}}}]}, sec, nsec)
+                msg = dict(msg, ranges=[msg["ranges"][i] for i in order])
+            w.write(topic, type_name, msg, sec, nsec)
+    w.finish()
+
+
+def _robot_points(s):
+    """A scan's hits in the robot frame."""
+    p = s.points()
+    c, si = math.cos(s.laser_offset[2]), math.sin(s.laser_offset[2])
+    return np.c_[s.laser_offset[0] + c * p[:, 0] - si * p[:, 1], s.laser_offset[1] + si * p[:, 0] + c * p[:, 1]]
+
+
+@pytest.mark.parametrize("kind,yaw_deg", [("ros1", 0), ("mcap", 90), ("ros1", 180)])
+def test_an_upside_down_laser_is_mirrored_into_the_robot_plane(tmp_path, kind, yaw_deg, caplog):
+    scans = [s for s in sim_scans(20) if np.array_equal(s.laser_offset, np.zeros(3))]
+    assert len(scans) == 20 and scans[0].num_beams == 360
+    p = tmp_path / ("u.bag" if kind == "ros1" else "u")
+    _upside_down_bag(p, scans, kind, yaw_deg)
+    with caplog.at_level(logging.INFO, logger="slam2d.io"):
+        log = RosbagLog(p)
+        back = list(log)
+    assert log.laser_mount.mirrored and "upside down" in caplog.text
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]  # exactly upside down: nothing to warn of
+    for a, b in zip(scans, back):
+        np.testing.assert_allclose(b.laser_offset, [0.1, 0.0, math.radians(yaw_deg)], atol=1e-12)
+        assert np.all(np.diff(b.angles) > 0)
+        # the same hits where the robot is, up to the mount's 0.1 m ahead
+        got, want = _robot_points(b), _robot_points(a) + [0.1, 0.0]
+        assert len(got) == len(want) > 300
+        assert np.max(cKDTree(want).query(got)[0]) < 1e-5
+
+
+def test_slam_maps_an_upside_down_laser_as_an_upright_one(tmp_path, capsys):
+    scans = sim_scans(150)
+    up, down = tmp_path / "up.bag", tmp_path / "down.bag"
+    write_bag(up, scans, "ros1")
+    _upside_down_bag(down, scans, "ros1", 0)
+    poses = {}
+    for name, p in (("up", up), ("down", down)):
+        assert main(["run", str(p), "--out", str(tmp_path / name), "--no-progress", "--no-loop-closure"]) == 0
+        poses[name] = np.loadtxt(tmp_path / name / "trajectory.txt")[:, 1:3]
+    # the upside-down laser sits 0.1 m ahead: trajectories are the robot's, so they agree
+    assert np.max(np.hypot(*(poses["up"] - poses["down"]).T)) < 0.02
+    assert np.ptp(poses["up"][:, 0]) > 2.0  # the robot went somewhere
+    capsys.readouterr()
+    for name, p in (("up", up), ("down", down)):  # `slam2d info` says what it decided
+        assert main(["info", str(p), "--json"]) == 0
+        assert json.loads(capsys.readouterr().out)["laser_upside_down"] == (name == "down")

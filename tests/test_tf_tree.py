@@ -56,18 +56,39 @@ def test_missing_mount_warns_once_and_is_zero(caplog):
     _add(tree, "base_link", "camera", (0.1, 0.0, 0.0))
     with caplog.at_level(logging.WARNING, logger="slam2d.io"):
         m = laser_mount(tree, "laser", "base_link", "robot.bag")
-    np.testing.assert_array_equal(m, np.zeros(3))
+    np.testing.assert_array_equal(m.pose, np.zeros(3))
+    assert not m.mirrored
     (rec,) = caplog.records
     assert "robot.bag" in rec.message and "'base_link' to 'laser'" in rec.message
     assert "zero laser mount" in rec.message and "base_link, camera" in rec.message
 
 
-def test_upside_down_laser_is_warned_about(caplog):
+@pytest.mark.parametrize("roll_deg,pitch_deg,mirrored,warned", [
+    (180, 0, True, False), (0, 180, True, False), (177, 0, True, False),  # upside down, by roll or pitch
+    (170, 0, True, True), (10, 0, False, True), (3, 0, False, False)])   # tilted: projected, and said so
+def test_upside_down_laser_is_mirrored_and_a_tilted_one_warned_about(caplog, roll_deg, pitch_deg, mirrored, warned):
+    """The mount's planar yaw is that of the laser's x axis; a laser whose z axis points down sweeps
+    the plane the other way round. Checked by projecting a beam through the 3D transform."""
+    from slam2d.io.tf_tree import transform_matrix
+
+    roll, pitch, yaw = math.radians(roll_deg), math.radians(pitch_deg), 0.7
+    cr, sr, cp, sp, cy, sy = (f(a / 2) for a in (roll, pitch, yaw) for f in (math.cos, math.sin))
+    q = (sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy,
+         cr * cp * cy + sr * sp * sy)  # roll about x, pitch about y, yaw about z (ZYX)
     tree = TfTree()
-    tree.add("base_link", "laser", (0.1, 0.0, 0.0), _q(0.0, roll=math.pi), True)
-    with caplog.at_level(logging.WARNING, logger="slam2d.io"):
-        tree.pose_of("laser", "base_link")
-    assert "upside down" in caplog.text
+    tree.add("base_link", "laser", (0.1, -0.2, 0.3), q, True)
+    with caplog.at_level(logging.INFO, logger="slam2d.io"):
+        m = laser_mount(tree, "laser", "base_link", "x.bag")
+    assert m.mirrored == mirrored
+    assert bool([r for r in caplog.records if r.levelno >= logging.WARNING]) == warned
+    assert ("upside down" in caplog.text) == mirrored
+    # a beam at 0.4 rad in the laser's plane, 3 m out: where the 3D transform puts it, in the plane
+    beam = 3.0 * np.array([math.cos(0.4), math.sin(0.4), 0.0, 1.0 / 3.0])
+    want = (transform_matrix((0.1, -0.2, 0.3), q) @ beam)[:2]
+    a = (-0.4 if m.mirrored else 0.4) + m.pose[2]
+    got = m.pose[:2] + 3.0 * np.array([math.cos(a), math.sin(a)])
+    tol = 1e-9 if roll_deg in (0, 180) and pitch_deg in (0, 180) else 3.0 * (1 - math.cos(math.radians(10))) + 0.1
+    np.testing.assert_allclose(got, want, atol=tol)
 
 
 def test_bad_quaternion_is_an_error():
@@ -80,6 +101,6 @@ def test_without_odometry_the_robot_is_the_root_of_the_lasers_tree(caplog):
     _add(tree, "base_footprint", "base_link", (0.5, 0.0, 0.0))
     _add(tree, "base_link", "laser", (0.2, 0.0, 0.0))
     with caplog.at_level(logging.DEBUG, logger="slam2d.io"):
-        np.testing.assert_allclose(laser_mount(tree, "laser", None, "x.bag"), [0.7, 0.0, 0.0])
-        np.testing.assert_array_equal(laser_mount(TfTree(), "laser", None, "x.bag"), np.zeros(3))
+        np.testing.assert_allclose(laser_mount(tree, "laser", None, "x.bag").pose, [0.7, 0.0, 0.0])
+        np.testing.assert_array_equal(laser_mount(TfTree(), "laser", None, "x.bag").pose, np.zeros(3))
     assert not [r for r in caplog.records if r.levelno >= logging.WARNING]

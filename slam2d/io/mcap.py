@@ -15,7 +15,7 @@ from slam2d.errors import InputError
 from slam2d.io.ros2_msgs import msgdef, stamp_from_text
 from slam2d.io.ros_input import (GROUND_TRUTH_TOPIC, TF_TYPES, PoseTrack, ScanConverter, add_pose,
                                  choose_topics)
-from slam2d.io.tf_tree import TfTree, laser_mount
+from slam2d.io.tf_tree import LaserMount, TfTree, laser_mount
 from slam2d.types import Scan
 
 
@@ -35,6 +35,11 @@ class McapLog:
         self.topics = self._topics()
         self.scan_topic, self.odom_topic, self.gt_topic = choose_topics(self.path, self.topics, scan_topic, odom_topic)
         self._tracks_cache = None  # read once: a second pass (results.mcap) warns about the mount only once
+
+    @property
+    def laser_mount(self) -> LaserMount | None:
+        """The laser's mount from the log's TF tree (``tf_tree.laser_mount``) once a pass over the scans read it."""
+        return None if self._tracks_cache is None else self._tracks_cache[2]
 
     def _reader(self, f):
         from mcap.reader import make_reader

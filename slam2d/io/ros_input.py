@@ -14,6 +14,7 @@ import numpy as np
 from slam2d.errors import InputError
 from slam2d.geometry import interpolate_pose, quaternion_to_yaw
 from slam2d.io.ros2_msgs import stamp_text
+from slam2d.io.tf_tree import LaserMount
 from slam2d.types import Scan
 
 SCAN_TYPES = ("sensor_msgs/msg/LaserScan", "sensor_msgs/LaserScan")
@@ -137,7 +138,7 @@ def add_pose(track: PoseTrack, path, record: int, topic: str, header, pose) -> N
 class ScanConverter:
     """Decoded LaserScan messages, in log order, to `Scan` records (index = message number)."""
 
-    def __init__(self, path, mount: np.ndarray, odom: PoseTrack, ground_truth: PoseTrack | None = None):
+    def __init__(self, path, mount: LaserMount, odom: PoseTrack, ground_truth: PoseTrack | None = None):
         self.path, self.mount, self.odom, self.gt = path, mount, odom, ground_truth
         self.latest: float | None = None
         self.seen: dict[float, int] = {}  # scans per stamp so far: several scans stamped alike pair
@@ -160,10 +161,14 @@ class ScanConverter:
             if np.any(r < 0):
                 raise InputError(self.path, "negative range reading", record=k)
         inten = np.asarray(m.intensities, dtype=np.float32) if len(m.intensities) == r.size else None
+        a0, da = laser_angle(float(m.angle_min), r.size), laser_angle(float(m.angle_increment), r.size)
+        if self.mount.mirrored:  # upside down: the beam at a lies at -a (``tf_tree``); listed in the same angular order
+            a0 = -(a0 + (r.size - 1) * da)
+            r = np.ascontiguousarray(r[::-1])
+            inten = None if inten is None else np.ascontiguousarray(inten[::-1])
         nth = self.seen.get(t, 0)
         self.seen[t] = nth + 1
-        return Scan.from_ranges(t, r, laser_angle(float(m.angle_min), r.size),
-                                laser_angle(float(m.angle_increment), r.size), m.range_max,
+        return Scan.from_ranges(t, r, a0, da, m.range_max,
                                 odom_pose=self.odom.at(t, nth) if self.odom else None, range_min=m.range_min,
-                                laser_offset=self.mount, intensities=inten, timestamp_text=text, index=k,
+                                laser_offset=self.mount.pose, intensities=inten, timestamp_text=text, index=k,
                                 ground_truth=self.gt.at(t, nth) if self.gt else None)

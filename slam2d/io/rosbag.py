@@ -21,7 +21,7 @@ import numpy as np
 
 from slam2d.errors import InputError, UsageError
 from slam2d.io.ros_input import TF_TYPES, PoseTrack, ScanConverter, add_pose, choose_topics
-from slam2d.io.tf_tree import TfTree, laser_mount
+from slam2d.io.tf_tree import LaserMount, TfTree, laser_mount
 from slam2d.types import Scan
 
 
@@ -79,6 +79,11 @@ class RosbagLog:
 
     def num_scans(self) -> int:
         return self.counts[self.scan_topic]
+
+    @property
+    def laser_mount(self) -> LaserMount | None:
+        """The laser's mount from the log's TF tree (``tf_tree.laser_mount``) once a pass over the scans read it."""
+        return None if self._tracks_cache is None else self._tracks_cache[2]
 
     def _messages(self, reader, topics):
         """(record number, topic, decoded message) of ``topics`` in bag order."""

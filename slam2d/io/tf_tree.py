@@ -3,7 +3,11 @@
 A ROS log says where the laser sits on the robot as a chain of transforms, e.g.
 ``base_link → base_laser_mount → laser``. `TfTree` collects every parent→child edge, composes
 the chain between two frames in 3D (either direction, any length) and projects the result onto
-the plane: the laser's pose (x, y, yaw) in the robot frame, which is `Scan.laser_offset`.
+the plane: the laser's pose (x, y, yaw) in the robot frame, which is `Scan.laser_offset`. A
+laser mounted upside down (its z axis pointing down: a roll or pitch of 180°) sweeps the plane
+the other way round, so its beam at angle a lies at -a in a frame turned by that yaw
+(`LaserMount.mirrored`; the readers mirror its scans, as Cartographer's 3D sensor transform and
+slam_toolbox's inverted-laser check do).
 Edges from ``/tf_static`` are fixed; an edge from ``/tf`` is used only when it never changed
 over the log (old ROS 1 bags publish fixed mounts on ``/tf``); an edge that moves (odom →
 base_link) is not a mount. Frame names are compared without a leading ``/`` (ROS 1 style).
@@ -13,6 +17,7 @@ from __future__ import annotations
 import logging
 import math
 from collections import deque
+from typing import NamedTuple
 
 import numpy as np
 
@@ -22,6 +27,14 @@ log = logging.getLogger("slam2d.io")
 CHANGE_TOLERANCE = 1e-6
 #: a composed mount whose z axis leans more than this from the robot's (rad) is warned about
 TILT_WARNING = math.radians(5.0)
+
+
+class LaserMount(NamedTuple):
+    """Where the laser sits in the robot frame: its planar pose (x, y, yaw) and whether it is
+    mounted upside down (``mirrored``: a beam at angle a lies at -a in the frame of that pose)."""
+
+    pose: np.ndarray
+    mirrored: bool = False
 
 
 def frame_name(frame: str) -> str:
@@ -109,9 +122,16 @@ class TfTree:
 
     def pose_of(self, frame: str, in_frame: str) -> np.ndarray | None:
         """(x, y, yaw) of ``frame`` in ``in_frame`` through fixed edges; None when not connected."""
+        mount = self.mount_of(frame, in_frame)
+        return None if mount is None else mount.pose
+
+    def mount_of(self, frame: str, in_frame: str) -> LaserMount | None:
+        """``frame`` in ``in_frame`` through fixed edges, projected onto the plane (module docstring);
+        None when not connected. The yaw is that of ``frame``'s x axis; ``mirrored`` when its z axis
+        points down."""
         frame, in_frame = frame_name(frame), frame_name(in_frame)
         if frame == in_frame:
-            return np.zeros(3)
+            return LaserMount(np.zeros(3), False)
         path = self._path(in_frame, frame)
         if path is None:
             return None
@@ -120,14 +140,19 @@ class TfTree:
             e = self._edges[(p, c)]
             m = m @ (e if forward else np.linalg.inv(e))
         tilt = math.acos(float(np.clip(m[2, 2], -1.0, 1.0)))
-        if tilt > TILT_WARNING:
-            log.warning("the laser frame %r leans %.1f° from %r (upside down or tilted); slam2d uses its "
-                        "projection onto the plane", frame, math.degrees(tilt), in_frame)
-        return np.array([m[0, 3], m[1, 3], math.atan2(m[1, 0], m[0, 0])])
+        mirrored = m[2, 2] < 0
+        if min(tilt, math.pi - tilt) > TILT_WARNING:
+            log.warning("the laser frame %r leans %.1f° from %r's %s; slam2d uses its projection onto the plane",
+                        frame, math.degrees(min(tilt, math.pi - tilt)), in_frame,
+                        "downward axis (mounted upside down, tilted)" if mirrored else "vertical")
+        elif mirrored:
+            log.info("the laser frame %r is upside down in %r: its scans are mirrored into the robot's plane",
+                     frame, in_frame)
+        return LaserMount(np.array([m[0, 3], m[1, 3], math.atan2(m[1, 0], m[0, 0])]), bool(mirrored))
 
 
-def laser_mount(tree: TfTree, scan_frame: str | None, base_frame: str | None, source) -> np.ndarray:
-    """The laser's pose in the robot frame, or zero with one warning saying why.
+def laser_mount(tree: TfTree, scan_frame: str | None, base_frame: str | None, source) -> LaserMount:
+    """The laser's mount in the robot frame, or zero with one warning saying why.
 
     The robot frame is the odometry's child frame (``base_frame``); a log without odometry has
     none, and then it is the root of the fixed tree the laser hangs from, or, with no TF for the
@@ -136,14 +161,14 @@ def laser_mount(tree: TfTree, scan_frame: str | None, base_frame: str | None, so
         base_frame = tree.root_of(scan_frame)
         if base_frame is None:
             log.debug("%s: no odometry and no TF for %r: trajectories are the laser's", source, scan_frame)
-            return np.zeros(3)
+            return LaserMount(np.zeros(3))
     if scan_frame is not None and base_frame is not None:
-        pose = tree.pose_of(scan_frame, base_frame)
-        if pose is not None:
-            return pose
+        mount = tree.mount_of(scan_frame, base_frame)
+        if mount is not None:
+            return mount
         why = f"no chain of fixed TF transforms from {frame_name(base_frame)!r} to {frame_name(scan_frame)!r}"
     else:
         why = "the LaserScan has no header.frame_id"
     known = ", ".join(sorted(tree.frames())) or "none"
     log.warning("%s: %s (TF frames: %s); using a zero laser mount (laser at the robot's origin)", source, why, known)
-    return np.zeros(3)
+    return LaserMount(np.zeros(3))
