@@ -223,7 +223,8 @@ def cmd_info(args) -> int:
         info["no_return_threshold_m"] = f.no_return_value
         info["no_return_evidence"] = f.no_return_evidence
     mount = getattr(source, "laser_mount", None)
-    if mount is not None:  # ROS: the TF tree says whether the laser hangs upside down (its scans are mirrored)
+    if mount is not None:  # ROS: where the odometry came from; whether the laser hangs upside down (mirrored)
+        info["odometry_from"] = source.odometry_from
         info["laser_upside_down"] = mount.mirrored
     if args.json:
         print(json.dumps(info, indent=2))

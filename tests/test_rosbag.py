@@ -276,3 +276,53 @@ def test_slam_maps_an_upside_down_laser_as_an_upright_one(tmp_path, capsys):
     for name, p in (("up", up), ("down", down)):  # `slam2d info` says what it decided
         assert main(["info", str(p), "--json"]) == 0
         assert json.loads(capsys.readouterr().out)["laser_upside_down"] == (name == "down")
+
+
+def _tf_odometry_bag(path, scans, kind):
+    """The simulator's scans as a bag recorded for slam_toolbox: no nav_msgs/Odometry, the wheel
+    odometry only as the TF edge odom → base_footprint on /tf, beside a moving map → odom (a SLAM
+    node ran while it was recorded) and a fixed base_footprint → laser on /tf_static."""
+    from slam2d.io.mcap import scan_messages
+
+    def tf(parent, child, pose, sec, nsec):
+        z, w = yaw_quaternion(pose[2])
+        return {"header": {"stamp": {"sec": sec, "nanosec": nsec}, "frame_id": parent}, "child_frame_id": child,
+                "transform": {"translation": {"x": float(pose[0]), "y": float(pose[1]), "z": 0.0},
+                              "rotation": {"z": z, "w": w}}}
+
+    w = RosbagWriter(path, kind)
+    for k, s in enumerate(scans):
+        for topic, type_name, msg, sec, nsec in scan_messages(s, with_mount=False):
+            if type_name == "nav_msgs/Odometry":
+                w.write("/tf", "tf2_msgs/TFMessage", {"transforms": [
+                    tf("map", "odom", (0.01 * k, 0.0, 0.001 * k), sec, nsec),
+                    tf("odom", "base_footprint", s.odom_pose, sec, nsec)]}, sec, nsec)
+                continue
+            if k == 0 and type_name == "sensor_msgs/LaserScan":
+                w.write("/tf_static", "tf2_msgs/TFMessage", {"transforms": [
+                    tf("base_footprint", "laser", (0.0, 0.0, 0.0), sec, nsec)]}, sec, nsec)
+            w.write(topic, type_name, msg, sec, nsec)
+    w.finish()
+
+
+@pytest.mark.parametrize("kind", ["ros1", "mcap"])
+def test_without_an_odometry_topic_the_moving_tf_edge_into_the_robot_is_the_odometry(tmp_path, kind, capsys):
+    scans = sim_scans(120)
+    plain, tf_only = tmp_path / "plain.bag", tmp_path / ("tf.bag" if kind == "ros1" else "tf")
+    write_bag(plain, scans, "ros1")
+    _tf_odometry_bag(tf_only, scans, kind)
+    log = RosbagLog(tf_only)
+    assert log.odom_topic is None
+    back = list(log)
+    assert log.odometry_from.startswith("TF odom -> base_footprint (120 transforms")
+    for a, b in zip(scans, back):
+        np.testing.assert_allclose(b.odom_pose, a.odom_pose, atol=1e-12)
+        np.testing.assert_array_equal(b.laser_offset, np.zeros(3))
+    runs = {}
+    for name, p in (("plain", plain), ("tf", tf_only)):
+        assert main(["run", str(p), "--out", str(tmp_path / name), "--no-progress"]) == 0
+        runs[name] = np.loadtxt(tmp_path / name / "trajectory.txt")[:, 1:4]
+    assert np.max(np.abs(runs["plain"] - runs["tf"])) < 1e-3
+    capsys.readouterr()
+    assert main(["info", str(tf_only), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["odometry_from"].startswith("TF odom -> base_footprint")

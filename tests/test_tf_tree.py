@@ -104,3 +104,19 @@ def test_without_odometry_the_robot_is_the_root_of_the_lasers_tree(caplog):
         np.testing.assert_allclose(laser_mount(tree, "laser", None, "x.bag").pose, [0.7, 0.0, 0.0])
         np.testing.assert_array_equal(laser_mount(TfTree(), "laser", None, "x.bag").pose, np.zeros(3))
     assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
+
+
+def test_the_moving_edge_into_a_frame_is_kept_in_stamp_order():
+    tree = TfTree()
+    for k in (2, 0, 1, 3):  # arrival order is not stamp order
+        tree.add("odom", "base_link", (0.1 * k, 0.0, 0.0), _q(0.05 * k), False, stamp=10.0 + k)
+        tree.add("map", "odom", (0.0, 0.01 * k, 0.0), _q(0.0), False, stamp=10.0 + k)
+        tree.add("base_link", "laser", (0.2, 0.0, 0.0), _q(0.0), False, stamp=10.0 + k)  # fixed though on /tf
+    parent, rows = tree.moving_edge("base_link")
+    assert parent == "odom"
+    np.testing.assert_allclose(rows, [[10.0 + k, 0.1 * k, 0.0, 0.05 * k] for k in range(4)], atol=1e-12)
+    assert tree.moving_edge("laser") is None  # it never moved: a mount
+    assert tree.moving_edge("odom")[0] == "map"
+    tree.add("elsewhere", "base_link", (0.0, 0.0, 0.0), _q(0.0), False, stamp=1.0)
+    tree.add("elsewhere", "base_link", (1.0, 0.0, 0.0), _q(0.0), False, stamp=2.0)
+    assert tree.moving_edge("base_link") is None  # two moving edges into one frame: neither is the odometry

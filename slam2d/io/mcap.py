@@ -14,8 +14,8 @@ import numpy as np
 from slam2d.errors import InputError
 from slam2d.io.ros2_msgs import msgdef, stamp_from_text
 from slam2d.io.ros_input import (GROUND_TRUTH_TOPIC, TF_TYPES, PoseTrack, ScanConverter, add_pose,
-                                 choose_topics)
-from slam2d.io.tf_tree import LaserMount, TfTree, laser_mount
+                                 choose_topics, robot_tracks)
+from slam2d.io.tf_tree import LaserMount, TfTree
 from slam2d.types import Scan
 
 
@@ -35,6 +35,7 @@ class McapLog:
         self.topics = self._topics()
         self.scan_topic, self.odom_topic, self.gt_topic = choose_topics(self.path, self.topics, scan_topic, odom_topic)
         self._tracks_cache = None  # read once: a second pass (results.mcap) warns about the mount only once
+        self.odometry_from: str | None = None  # known once a pass over the scans read the log (``robot_tracks``)
 
     @property
     def laser_mount(self) -> LaserMount | None:
@@ -95,7 +96,8 @@ class McapLog:
                     add_pose(odom, self.path, k, ch.topic, m.header, m.pose.pose)
                 else:
                     add_pose(gt, self.path, k, ch.topic, m.header, m.pose)
-        return odom, gt, laser_mount(tree, scan_frame, base, self.path)
+        odom, mount, self.odometry_from = robot_tracks(self.path, tree, odom, self.odom_topic, scan_frame, base)
+        return odom, gt, mount
 
     def __iter__(self):
         try:

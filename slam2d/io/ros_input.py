@@ -9,12 +9,14 @@ import bisect
 import functools
 import math
 
+import logging
+
 import numpy as np
 
 from slam2d.errors import InputError
 from slam2d.geometry import interpolate_pose, quaternion_to_yaw
 from slam2d.io.ros2_msgs import stamp_text
-from slam2d.io.tf_tree import LaserMount
+from slam2d.io.tf_tree import LaserMount, TfTree, frame_name, laser_mount
 from slam2d.types import Scan
 
 SCAN_TYPES = ("sensor_msgs/msg/LaserScan", "sensor_msgs/LaserScan")
@@ -22,6 +24,7 @@ ODOM_TYPES = ("nav_msgs/msg/Odometry", "nav_msgs/Odometry")
 POSE_TYPES = ("geometry_msgs/msg/PoseStamped", "geometry_msgs/PoseStamped")
 TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf2_msgs/TFMessage", "tf/msg/tfMessage", "tf/tfMessage")
 GROUND_TRUTH_TOPIC = "/ground_truth"
+log = logging.getLogger("slam2d.io")
 #: a scan stamped earlier than the latest one by more than this [s] is an error
 MAX_TIME_REVERSAL = 1.0
 
@@ -125,6 +128,28 @@ class PoseTrack:
         if i >= len(self.t):
             return self.p[-1].copy()
         return interpolate_pose(t, self.t[i - 1], self.p[i - 1], self.t[i], self.p[i])
+
+
+def robot_tracks(path, tree: TfTree, odom: PoseTrack, odom_topic: str | None, scan_frame: str | None,
+                 base: str | None) -> tuple[PoseTrack, LaserMount, str]:
+    """(odometry, laser mount, where the odometry came from) once a log's messages are read.
+
+    The odometry is that of the ``nav_msgs/Odometry`` topic; a log without one may still carry the
+    wheel odometry as the moving TF edge into the robot frame (``odom`` → ``base_footprint`` on
+    ``/tf``, the only odometry slam_toolbox reads), and then that edge is it. The robot frame is
+    the Odometry's child frame, else the root of the fixed TF chain the laser hangs from."""
+    if odom_topic is not None:
+        return odom, laser_mount(tree, scan_frame, base, path), f"nav_msgs/Odometry on {odom_topic}"
+    robot = (tree.root_of(scan_frame) or frame_name(scan_frame)) if scan_frame else None
+    edge = tree.moving_edge(robot) if robot is not None else None
+    if edge is None:
+        return odom, laser_mount(tree, scan_frame, None, path), "none"
+    parent, rows = edge
+    for t, x, y, yaw in rows:
+        odom.add(float(t), np.array([x, y, yaw]))
+    log.info("%s: no nav_msgs/Odometry topic; the odometry is the TF edge %r -> %r (%d transforms on /tf)",
+             path, parent, robot, len(rows))
+    return odom, laser_mount(tree, scan_frame, robot, path), f"TF {parent} -> {robot} ({len(rows)} transforms on /tf)"
 
 
 def add_pose(track: PoseTrack, path, record: int, topic: str, header, pose) -> None:

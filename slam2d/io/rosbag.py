@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from slam2d.errors import InputError, UsageError
-from slam2d.io.ros_input import TF_TYPES, PoseTrack, ScanConverter, add_pose, choose_topics
-from slam2d.io.tf_tree import LaserMount, TfTree, laser_mount
+from slam2d.io.ros_input import TF_TYPES, PoseTrack, ScanConverter, add_pose, choose_topics, robot_tracks
+from slam2d.io.tf_tree import LaserMount, TfTree
 from slam2d.types import Scan
 
 
@@ -65,6 +65,7 @@ class RosbagLog:
             r.close()
         self.scan_topic, self.odom_topic, self.gt_topic = choose_topics(self.path, self.topics, scan_topic, odom_topic)
         self._tracks_cache = None  # read once: a second pass (results.mcap) warns about the mount only once
+        self.odometry_from: str | None = None  # known once a pass over the scans read the log (``robot_tracks``)
 
     def _open(self):
         from rosbags.highlevel import AnyReader
@@ -114,7 +115,8 @@ class RosbagLog:
                 add_pose(odom, self.path, k, topic, m.header, m.pose.pose)
             else:
                 add_pose(gt, self.path, k, topic, m.header, m.pose)
-        return odom, gt, laser_mount(tree, scan_frame, base, self.path)
+        odom, mount, self.odometry_from = robot_tracks(self.path, tree, odom, self.odom_topic, scan_frame, base)
+        return odom, gt, mount
 
     def __iter__(self):
         reader = self._open()

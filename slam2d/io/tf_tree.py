@@ -10,16 +10,21 @@ the other way round, so its beam at angle a lies at -a in a frame turned by that
 slam_toolbox's inverted-laser check do).
 Edges from ``/tf_static`` are fixed; an edge from ``/tf`` is used only when it never changed
 over the log (old ROS 1 bags publish fixed mounts on ``/tf``); an edge that moves (odom →
-base_link) is not a mount. Frame names are compared without a leading ``/`` (ROS 1 style).
+base_link) is not a mount. Its stamped values are kept (`TfTree.moving_edge`): where a log has
+no ``nav_msgs/Odometry``, the moving edge into the robot frame is the wheel odometry, as
+slam_toolbox reads it (``odom_frame`` → ``base_frame`` through TF). Frame names are compared without a leading ``/`` (ROS 1 style).
 """
 from __future__ import annotations
 
 import logging
 import math
+from array import array
 from collections import deque
 from typing import NamedTuple
 
 import numpy as np
+
+from slam2d.io.ros2_msgs import stamp_text
 
 log = logging.getLogger("slam2d.io")
 
@@ -66,11 +71,15 @@ class TfTree:
     def __init__(self):
         self._edges: dict[tuple[str, str], np.ndarray] = {}
         self._dynamic: set[tuple[str, str]] = set()
+        self._samples: dict[tuple[str, str], array] = {}  # /tf edges: (stamp, x, y, yaw) after one another
 
-    def add(self, parent: str, child: str, translation, quaternion, static: bool) -> None:
-        """One ``TransformStamped``: ``translation`` (x, y, z), ``quaternion`` (x, y, z, w)."""
+    def add(self, parent: str, child: str, translation, quaternion, static: bool, stamp: float | None = None) -> None:
+        """One ``TransformStamped``: ``translation`` (x, y, z), ``quaternion`` (x, y, z, w), its
+        header's ``stamp`` [s] (kept for an edge that is not static)."""
         key = (frame_name(parent), frame_name(child))
         m = transform_matrix(translation, quaternion)
+        if not static and stamp is not None:
+            self._samples.setdefault(key, array("d")).extend((stamp, m[0, 3], m[1, 3], math.atan2(m[1, 0], m[0, 0])))
         if static or key not in self._edges:
             self._edges[key] = m
             if static:
@@ -82,7 +91,18 @@ class TfTree:
         """Every transform of a decoded ``tf2_msgs/TFMessage``."""
         for tr in msg.transforms:
             t, q = tr.transform.translation, tr.transform.rotation
-            self.add(tr.header.frame_id, tr.child_frame_id, (t.x, t.y, t.z), (q.x, q.y, q.z, q.w), static)
+            stamp = float(stamp_text(int(tr.header.stamp.sec), int(tr.header.stamp.nanosec)))
+            self.add(tr.header.frame_id, tr.child_frame_id, (t.x, t.y, t.z), (q.x, q.y, q.z, q.w), static, stamp)
+
+    def moving_edge(self, child: str) -> tuple[str, np.ndarray] | None:
+        """The one edge into ``child`` that moves over the log: (its parent frame, (N, 4) rows of
+        stamp, x, y, yaw in stamp order); None when no edge, or more than one, moves into it."""
+        child = frame_name(child)
+        keys = [k for k in self._dynamic if k[1] == child and k in self._samples]
+        if len(keys) != 1:
+            return None
+        rows = np.frombuffer(self._samples[keys[0]], dtype=np.float64).reshape(-1, 4)
+        return keys[0][0], rows[np.argsort(rows[:, 0], kind="stable")]
 
     def root_of(self, frame: str) -> str | None:
         """The topmost frame ``frame`` hangs from through fixed edges (None when it has no parent)."""
