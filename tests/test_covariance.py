@@ -139,11 +139,38 @@ def test_unmatched_scans_get_the_loosest_covariance():
     cov_u = np.linalg.inv(f_unmatched.noiseModel().R().T @ f_unmatched.noiseModel().R())
     cov_m = np.linalg.inv(f_matched.noiseModel().R().T @ f_matched.noiseModel().R())
     # the unmatched prior plus the submap's drift over the 0.2 m travelled since its first node
-    np.testing.assert_allclose(np.linalg.eigvalsh(cov_u), np.linalg.eigvalsh(prior + gs._drift_covariance(0.2)), rtol=1e-6)
+    np.testing.assert_allclose(np.linalg.eigvalsh(cov_u), np.linalg.eigvalsh(prior + gs._drift_covariance(0.2, 0.2)), rtol=1e-6)
     # never tighter than a matched scan's, in any direction
     assert np.all(np.linalg.eigvalsh(cov_u - cov_m) > 0)
     # and no matched window can hold a variance larger than the unmatched one
     assert prior[0, 0] >= rt.linear_search_window ** 2 and prior[2, 2] >= math.radians(rt.angular_search_window_deg) ** 2
+
+
+def test_heading_drift_grows_with_the_turn_as_with_the_path():
+    """A node-in-submap constraint's heading is as uncertain after turning on the spot by θ, with
+    hits at range R, as after driving R·θ in a straight line; its translation only follows the path."""
+    cfg = SlamConfig()
+    ring = 4.0 * np.c_[np.cos(np.linspace(0, 6, 200)), np.sin(np.linspace(0, 6, 200))]  # hits 4 m out
+
+    def in_submap_cov(poses):
+        gs = GlobalSlam(cfg)
+        for j, pose in enumerate(poses):
+            s = Scan(float(j), np.ones(3, np.float32), 0.0, 0.1, 0.0, 10.0, np.ones(3, bool), index=j)
+            gs.add_node(s, np.asarray(pose, float), ring, np.diag([1e-6, 1e-6, 1e-8]), [(0, np.zeros(3))])
+        g, last = gs.graph.graph, len(poses) - 1
+        (i,) = [i for i in range(g.size()) if set(g.at(i).keys()) == {gtsam.symbol("n", 0), gtsam.symbol("n", last)}]
+        r = g.at(i).noiseModel().R()
+        return np.linalg.inv(r.T @ r)
+
+    turning = in_submap_cov([(0.0, 0.0, 0.3 * k) for k in range(6)])     # 1.5 rad on the spot
+    driving = in_submap_cov([(1.2 * k, 0.0, 0.0) for k in range(6)])     # 6 m = 4 m × 1.5 rad
+    still = in_submap_cov([(0.0, 0.0, 0.0) for k in range(6)])
+    np.testing.assert_allclose(turning[2, 2], driving[2, 2], rtol=1e-6)
+    r = math.radians(cfg.loop_closure.local_drift_deg) * 6.0
+    assert turning[2, 2] >= r * r > 10 * still[2, 2]
+    np.testing.assert_allclose(np.diag(turning)[:2], np.diag(still)[:2], rtol=1e-6)  # no path: no translation drift
+    t = cfg.loop_closure.local_drift * 6.0
+    assert np.all(np.diag(driving)[:2] >= t * t)
 
 
 def test_floored_matches_the_eigendecomposition_it_shortcuts():

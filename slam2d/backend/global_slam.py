@@ -98,6 +98,7 @@ class GlobalSlam:
         # (``_release_points``)
         self._unfinished_of: dict[int, set[int]] = {}
         self.node_order: list[int] = []
+        self._range_sum, self._range_n, self._mean_range = 0.0, 0, 0.0  # ``_note_range``
         self.records: list[dict] = []
         self.correction = np.zeros(3)  # global <- local, from the latest optimization
         self.since_optimize = 0
@@ -143,8 +144,13 @@ class GlobalSlam:
         prev = self.nodes[self.node_order[-1]] if self.node_order else None
         step = 0.0 if prev is None else float(np.hypot(*(local_pose[:2] - prev["local"][:2])))
         path = 0.0 if prev is None else prev["path"] + step
+        turn = 0.0 if prev is None else abs(math.remainder(local_pose[2] - prev["local"][2], 2 * math.pi))
+        self._note_range(hits)
+        # how far the view moved: the metres driven, plus the radians turned times the typical range
+        # of a hit (a turn sweeps the scan's content across the sensor as a drive of that length does)
+        view = 0.0 if prev is None else prev["view"] + step + self._mean_range * turn
         self.drift.add(j, step, *doubt)
-        self.nodes[j] = {"local": local_pose, "time": scan.timestamp, "path": path,
+        self.nodes[j] = {"local": local_pose, "time": scan.timestamp, "path": path, "view": view,
                          "stamp": scan.timestamp_text or f"{scan.timestamp:.9f}",
                          "points": loop_points(hits, self.lc.voxel_filter_size, self.lc.adaptive_voxel_min_points,
                                                      self.lc.adaptive_voxel_max_length)}
@@ -173,7 +179,7 @@ class GlobalSlam:
             # vouch for on it (its doubt); where local SLAM started afresh, so that no submap holds
             # both, the doubt makes it as loose as the recovery was, and it is their only link.
             self.graph.add_intra(self.node_order[-2], j, between(prev["local"], local_pose),
-                                 2.0 * self.step_floor + self._drift_covariance(step)
+                                 2.0 * self.step_floor + self._drift_covariance(step, view - prev["view"])
                                  + np.diag([doubt[0] ** 2, doubt[0] ** 2, doubt[1] ** 2]),
                                  screened=not submaps & self._last_submaps)
         self._last_submaps = submaps
@@ -185,7 +191,8 @@ class GlobalSlam:
             a = self.submap_anchor[k]
             if a != j:
                 self.graph.add_intra(a, j, between(self.submap_local[k], local_pose),
-                                     cov + self._drift_covariance(self.nodes[j]["path"] - self.nodes[a]["path"]))
+                                     cov + self._drift_covariance(self.nodes[j]["path"] - self.nodes[a]["path"],
+                                                                  self.nodes[j]["view"] - self.nodes[a]["view"]))
         if self.lc.enabled and self._sample(j, local_pose):
             self._search_node(j, submaps)
         self.since_optimize += 1
@@ -195,12 +202,23 @@ class GlobalSlam:
             else:  # nothing new but local chains: the solution would only follow them
                 self.since_optimize = 0
 
-    def _drift_covariance(self, path: float) -> np.ndarray:
+    def _drift_covariance(self, path: float, view: float) -> np.ndarray:
         """What the score surface cannot see: the submap was built along ``path`` metres of local SLAM
         and drifted with it, so a node's pose relative to the submap's first node is uncertain by a
-        share of that path (isotropic in translation, so the same in every frame)."""
-        t, r = self.lc.local_drift * path, math.radians(self.lc.local_drift_deg) * path
+        share of that path (isotropic in translation, so the same in every frame). Its heading drifts
+        with how far the view moved (``view``: the path plus the turns, each radian as far as the
+        typical range of a hit): a robot turning on the spot matches scans whose content sweeps past,
+        and there local SLAM's heading errors arise, while it covers no path."""
+        t, r = self.lc.local_drift * path, math.radians(self.lc.local_drift_deg) * view
         return np.diag([t * t, t * t, r * r])
+
+    def _note_range(self, hits):
+        """Keep ``_mean_range``: the mean over the nodes so far of each one's median hit range."""
+        h = np.asarray(hits, dtype=float).reshape(-1, 2)
+        if len(h):
+            self._range_sum += float(np.median(np.hypot(h[:, 0], h[:, 1])))
+            self._range_n += 1
+            self._mean_range = self._range_sum / self._range_n
 
     def _sample(self, j, local_pose) -> bool:
         """Every ``sample_every_n_nodes``-th node, or sooner once the robot travelled as far as that many
