@@ -177,15 +177,20 @@ def test_fr079_whose_odometry_misses_a_turn_is_not_mapped_at_the_wrong_heading(t
     harsh = tmp_path / "fr079-harsh.clf"
     subprocess.run([sys.executable, str(tool), str(log), str(harsh), "--seed", "4", "--rot-scale", "0.5",
                     "--trans-scale", "0.1", "--keep-every", "3"], check=True, capture_output=True, timeout=600)
-    out = tmp_path / "run"
-    r = slam2d("run", harsh, "--out", out, "--no-progress")
-    assert r.returncode == 0, r.stderr
-    t, poses, _ = read_tum(out / "trajectory.txt")
-    m = relations_metric(t, poses, read_relations(relations("fr079")))
+    m, summary = _run_and_score(harsh, tmp_path / "run", "fr079")
     # Cartographer's published figure for the clean log: 0.0452 m
     assert m["abs_trans_m"]["mean"] < 0.0452, m["abs_trans_m"]
-    summary = json.loads((out / "summary.json").read_text())
     assert summary["health"]["status"] == "OK", summary["health"]["reasons"]
+
+
+def _run_and_score(log: Path, out: Path, name: str) -> tuple[dict, dict]:
+    """``slam2d run`` of ``log`` (default config): its relations metric on dataset ``name``'s
+    relations, and its summary."""
+    r = slam2d("run", log, "--out", out, "--no-progress")
+    assert r.returncode == 0, r.stderr
+    t, poses, _ = read_tum(out / "trajectory.txt")
+    return (relations_metric(t, poses, read_relations(relations(name))),
+            json.loads((out / "summary.json").read_text()))
 
 
 def _narrow_copy(log: Path, out: Path, fov_deg: float) -> None:
@@ -218,11 +223,6 @@ def test_intel_seen_through_a_90_degree_scanner_is_mapped_by_its_loops(tmp_path)
     0.27 m, health WARN). The heading's drift now counts the turns too."""
     narrow = tmp_path / "intel-90.clf"
     _narrow_copy(dataset("intel"), narrow, 90.0)
-    out = tmp_path / "run"
-    r = slam2d("run", narrow, "--out", out, "--no-progress")
-    assert r.returncode == 0, r.stderr
-    t, poses, _ = read_tum(out / "trajectory.txt")
-    m = relations_metric(t, poses, read_relations(relations("intel")))
+    m, summary = _run_and_score(narrow, tmp_path / "run", "intel")
     assert m["abs_trans_m"]["mean"] < 0.05, m["abs_trans_m"]
-    summary = json.loads((out / "summary.json").read_text())
     assert summary["health"]["status"] == "OK", summary["health"]["reasons"]
