@@ -476,6 +476,7 @@ class LocalSlam:
         quality = "unmatched"
         still_ref = False  # this scan becomes the reference of ``_still``
         recovered = None  # the pose a recovered match replaced
+        bound = (0.0, 0.0)  # the prediction's error bound (m, rad): the real-time windows before their caps
         if ref is not None:
             # the robot stood still since a scan that was matched and trusted: that scan's pose
             pose, score, match = ref[1], ref[3], ref[2]
@@ -484,7 +485,7 @@ class LocalSlam:
         elif submap is not None and len(points) >= 3:
             t1 = time.perf_counter()
             rt = self.cfg.real_time_matcher
-            lin, ang = self.windows(self.extrapolator.motion(predicted))
+            lin, ang = bound = self.windows(self.extrapolator.motion(predicted))
             lin_max, ang_max = self.largest_windows()
             # the wheel odometry's translation error as a prior, its motion window at ``window_sigmas`` σ
             # (a constant-velocity prediction is an assumption, not a measurement: no prior). A reading
@@ -574,6 +575,15 @@ class LocalSlam:
                     if recovered is None:  # a recovery is the event the error model does not cover
                         self.recent_errors.append(math.hypot(m.pose[0] - predicted[0], m.pose[1] - predicted[1]))
                     self.untrusted_in_a_row = 0
+                elif not m.on_edge and lin > rt.recovery_linear_window:
+                    # a low peak where the prediction's own error (a long gap in time, or a long drive
+                    # between scans) exceeds even the recovery window: nothing searched could hold the
+                    # pose, and the peak is no evidence of it. Local SLAM lost track: the scan starts
+                    # new submaps, as a forced one does, and its step is as loose as the prediction
+                    quality = "forced"
+                    self.num_matched += 1
+                    self.num_forced += 1
+                    self.untrusted_in_a_row = 0
                 elif not m.on_edge:
                     # a clear peak inside the window that scores low: the scan sees new ground or little
                     # of the submap; mapped, counted, and loose in the pose graph (no covariance)
@@ -602,7 +612,7 @@ class LocalSlam:
             self._still_ref = (odom, pose, match, score)
         elif ref is None:
             self._still_ref = None
-        self._doubt += self._step_doubt(quality, pose, recovered, submap is not None)
+        self._doubt += self._step_doubt(quality, pose, recovered, submap is not None, bound)
         if quality == "untrusted":  # the pose is the prediction: its error carries into the next one
             motion = self.extrapolator.motion(pose)
             self._carried += (math.hypot(motion[0], motion[1]), abs(math.remainder(motion[2], 2 * math.pi)))
@@ -689,16 +699,17 @@ class LocalSlam:
             return False
         return True
 
-    def _step_doubt(self, quality, pose, replaced, had_submap) -> np.ndarray:
+    def _step_doubt(self, quality, pose, replaced, had_submap, bound=(0.0, 0.0)) -> np.ndarray:
         """What a step adds to ``MatchingResult.doubt``. A recovered pose and the pose it replaced (the
         in-window match, or the prediction) cannot both be right: if the recovery chose wrong, the
-        step is off by the distance between them. A pose forced in from the edge of the window may
-        lie anywhere in the recovery window; a scan with too few points to match carries the
-        prediction, off by up to the regular window. An untrusted scan adds nothing: it is not
-        inserted, and the next scan is matched against the same submap."""
+        step is off by the distance between them. A pose forced in may lie anywhere in the recovery
+        window, or anywhere within ``bound`` (the prediction's error bound, m and rad) where that is
+        larger; a scan with too few points to match carries the prediction, off by up to the regular
+        window. An untrusted scan adds nothing: it is not inserted, and the next scan is matched
+        against the same submap."""
         rt = self.cfg.real_time_matcher
         if quality == "forced":
-            return np.array([rt.recovery_linear_window, math.radians(rt.recovery_angular_window_deg)])
+            return np.maximum([rt.recovery_linear_window, math.radians(rt.recovery_angular_window_deg)], bound)
         if replaced is not None and quality != "untrusted":
             return np.array([math.hypot(pose[0] - replaced[0], pose[1] - replaced[1]),
                              abs(math.remainder(pose[2] - replaced[2], 2 * math.pi))])
