@@ -7,9 +7,8 @@ from __future__ import annotations
 
 import bisect
 import functools
-import math
-
 import logging
+import math
 
 import numpy as np
 

@@ -12,7 +12,8 @@ Edges from ``/tf_static`` are fixed; an edge from ``/tf`` is used only when it n
 over the log (old ROS 1 bags publish fixed mounts on ``/tf``); an edge that moves (odom →
 base_link) is not a mount. Its stamped values are kept (`TfTree.moving_edge`): where a log has
 no ``nav_msgs/Odometry``, the moving edge into the robot frame is the wheel odometry, as
-slam_toolbox reads it (``odom_frame`` → ``base_frame`` through TF). Frame names are compared without a leading ``/`` (ROS 1 style).
+slam_toolbox reads it (``odom_frame`` → ``base_frame`` through TF). Frame names are compared
+without a leading ``/`` (ROS 1 style).
 """
 from __future__ import annotations
 
