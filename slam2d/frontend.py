@@ -575,24 +575,19 @@ class LocalSlam:
                     if recovered is None:  # a recovery is the event the error model does not cover
                         self.recent_errors.append(math.hypot(m.pose[0] - predicted[0], m.pose[1] - predicted[1]))
                     self.untrusted_in_a_row = 0
-                elif not m.on_edge and lin > rt.recovery_linear_window:
-                    # a low peak where the prediction's own error (a long gap in time, or a long drive
-                    # between scans) exceeds even the recovery window: nothing searched could hold the
-                    # pose, and the peak is no evidence of it. Local SLAM lost track: the scan starts
-                    # new submaps, as a forced one does, and its step is as loose as the prediction
-                    quality = "forced"
-                    self.num_matched += 1
-                    self.num_forced += 1
-                    self.untrusted_in_a_row = 0
-                elif not m.on_edge:
+                elif not m.on_edge and lin <= rt.recovery_linear_window:
                     # a clear peak inside the window that scores low: the scan sees new ground or little
                     # of the submap; mapped, counted, and loose in the pose graph (no covariance)
                     quality = "weak"
                     self.num_matched += 1
                     self.num_weak += 1
-                elif self.untrusted_in_a_row >= rt.max_untrusted_in_a_row:
-                    # on the edge several times in a row: the robot did move that way; map it, in new
-                    # submaps (``ActiveSubmaps.insert``: what was mapped before stays as it was)
+                elif not m.on_edge or self.untrusted_in_a_row >= rt.max_untrusted_in_a_row:
+                    # local SLAM lost track; the scan is mapped in new submaps (``ActiveSubmaps.insert``:
+                    # what was mapped before stays as it was), its step as loose as the recovery window
+                    # or the prediction's error (``_step_doubt``). Either a low peak where the
+                    # prediction's own error (a long gap in time, a long drive between scans) exceeds
+                    # even the recovery window: nothing searched could hold the pose, and the peak is no
+                    # evidence of it; or on the edge several times in a row: the robot did move that way
                     quality = "forced"
                     self.num_matched += 1
                     self.num_forced += 1
