@@ -607,7 +607,7 @@ class LocalSlam:
             self._still_ref = (odom, pose, match, score)
         elif ref is None:
             self._still_ref = None
-        self._doubt += self._step_doubt(quality, pose, recovered, submap is not None, bound)
+        self._doubt += self._step_doubt(quality, pose, recovered, submap is not None, bound, match)
         if quality == "untrusted":  # the pose is the prediction: its error carries into the next one
             motion = self.extrapolator.motion(pose)
             self._carried += (math.hypot(motion[0], motion[1]), abs(math.remainder(motion[2], 2 * math.pi)))
@@ -694,14 +694,18 @@ class LocalSlam:
             return False
         return True
 
-    def _step_doubt(self, quality, pose, replaced, had_submap, bound=(0.0, 0.0)) -> np.ndarray:
+    def _step_doubt(self, quality, pose, replaced, had_submap, bound=(0.0, 0.0), match=None) -> np.ndarray:
         """What a step adds to ``MatchingResult.doubt``. A recovered pose and the pose it replaced (the
         in-window match, or the prediction) cannot both be right: if the recovery chose wrong, the
         step is off by the distance between them. A pose forced in may lie anywhere in the recovery
         window, or anywhere within ``bound`` (the prediction's error bound, m and rad) where that is
         larger; a scan with too few points to match carries the prediction, off by up to the regular
-        window. An untrusted scan adds nothing: it is not inserted, and the next scan is matched
-        against the same submap."""
+        window. A weak match (``match``: a clear peak that scores below the trust limit: the scan sees
+        little of the submap) is off by what its score surface allows: the standard deviations of its
+        covariance (the larger of its translation axes, and its heading), so a run of weak matches
+        along which local SLAM's heading wandered is as loose in the pose graph as the matches were,
+        and loops that see it can bend it back. An untrusted scan adds nothing: it is not inserted,
+        and the next scan is matched against the same submap."""
         rt = self.cfg.real_time_matcher
         if quality == "forced":
             return np.maximum([rt.recovery_linear_window, math.radians(rt.recovery_angular_window_deg)], bound)
@@ -710,6 +714,10 @@ class LocalSlam:
                              abs(math.remainder(pose[2] - replaced[2], 2 * math.pi))])
         if quality == "unmatched" and had_submap:
             return np.array([rt.linear_search_window, math.radians(rt.angular_search_window_deg)])
+        if quality == "weak" and match is not None:
+            cov = match.covariance
+            if cov is not None:
+                return np.sqrt([max(np.linalg.eigvalsh(cov[:2, :2])[-1], 0.0), max(cov[2, 2], 0.0)])
         return np.zeros(2)
 
     def all_submaps(self):

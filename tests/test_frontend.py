@@ -1208,3 +1208,22 @@ def test_a_long_gap_into_new_ground_starts_new_submaps_that_loops_reattach(k, ga
     worst = max(_rel_error(res.poses[0], res.poses[j], gt[0], gt[j])[0] for j in range(0, len(kept), 10))
     assert worst < 0.1, worst
     assert res.summary["health"]["status"] == "OK", res.summary["health"]["reasons"]
+
+
+def test_a_weak_match_leaves_the_doubt_its_score_surface_allows():
+    """A weak match's step goes to the pose graph as loose as the match: its doubt is the standard
+    deviation of its covariance along the worse translation axis, and in heading; a trusted match
+    leaves none (its step is as sure as a match's floor), and a weak one without a score surface none
+    either."""
+    from types import SimpleNamespace
+
+    ls = LocalSlam(config_from_dict({}))
+    r = np.array([[math.cos(0.4), -math.sin(0.4)], [math.sin(0.4), math.cos(0.4)]])
+    cov = np.zeros((3, 3))
+    cov[:2, :2] = r @ np.diag([0.05 ** 2, 0.01 ** 2]) @ r.T  # long axis 5 cm, turned by 0.4 rad
+    cov[2, 2] = math.radians(0.3) ** 2
+    weak = SimpleNamespace(covariance=cov)
+    pose = np.zeros(3)
+    np.testing.assert_allclose(ls._step_doubt("weak", pose, None, True, match=weak), [0.05, math.radians(0.3)])
+    assert not ls._step_doubt("trusted", pose, None, True, match=weak).any()
+    assert not ls._step_doubt("weak", pose, None, True, match=SimpleNamespace(covariance=None)).any()
