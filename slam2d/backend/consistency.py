@@ -8,9 +8,9 @@ true, up to local SLAM's drift along the two local legs (|path a₁…a₂| + |p
 *tested* when those legs are short (``max_chain``), and *consistent* when the cycle's error is
 below ``tol_t + drift_t · chain`` metres and ``tol_r + drift_r · chain`` radians. The judge is
 independent of the pose-graph solution: it uses only local SLAM poses and the loops themselves.
-Where local SLAM could not vouch for a step on either leg (a recovered or forced pose, a weak match), the step's
-doubt is added to the tolerance: the drift bound's budget (``drift.py``) along the two legs
-replaces ``drift · chain`` when the budgets are given.
+Where local SLAM could not vouch for a step on either leg (a recovered or forced pose, a weak
+match), the step's doubt is added to the tolerance: the drift bound's budget (``drift.py``) along
+the two legs replaces ``drift · chain`` when the budgets are given.
 
 Loops are then removed greedily, most contradicted first, while some loop is contradicted by
 more tested partners than support it, and by at least two (one contradiction between two loops
