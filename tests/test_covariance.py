@@ -202,3 +202,30 @@ def test_floored_matches_the_eigendecomposition_it_shortcuts():
         raised += not above
     assert shortcut > 100 and raised > 100  # both paths were exercised
     assert np.array_equal(_floored(None, 0.1, 0.2), np.diag([0.1 ** 2, 0.1 ** 2, 0.2 ** 2]))
+
+
+def test_a_node_in_submap_constraint_carries_the_doubt_of_the_steps_since_the_submap_began():
+    """Local SLAM's doubt on the steps between a submap's first node and a node (a weak match's score
+    surface, a recovery's jump) adds to the node's constraint to that first node, variances summed:
+    the submap was built across those steps. A node before them, and the step factors, are as before."""
+    cfg = SlamConfig()
+    doubts = {3: (0.05, 0.01), 5: (0.03, 0.02)}
+
+    def in_submap_covs(with_doubt):
+        gs = GlobalSlam(cfg)
+        for j in range(6):
+            s = Scan(float(j), np.ones(3, np.float32), 0.0, 0.1, 0.0, 10.0, np.ones(3, bool), index=j)
+            gs.add_node(s, np.array([0.2 * j, 0.0, 0.1 * j]), np.zeros((0, 2)), np.diag([1e-6, 1e-6, 1e-8]),
+                        [(0, np.zeros(3))], doubt=doubts.get(j, (0.0, 0.0)) if with_doubt else (0.0, 0.0))
+        g, out = gs.graph.graph, {}
+        for j in (2, 4, 5):  # (node 1's step from node 0 joins the same two nodes)
+            (i,) = [i for i in range(g.size()) if set(g.at(i).keys()) == {gtsam.symbol("n", 0), gtsam.symbol("n", j)}]
+            r = g.at(i).noiseModel().R()
+            out[j] = np.linalg.inv(r.T @ r)
+        return out
+
+    plain, doubted = in_submap_covs(False), in_submap_covs(True)
+    np.testing.assert_allclose(doubted[2], plain[2], rtol=1e-9)  # no doubtful step before node 2
+    np.testing.assert_allclose(doubted[4] - plain[4], np.diag([0.05 ** 2, 0.05 ** 2, 0.01 ** 2]), rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(doubted[5] - plain[5], np.diag([0.05 ** 2 + 0.03 ** 2, 0.05 ** 2 + 0.03 ** 2,
+                                                               0.01 ** 2 + 0.02 ** 2]), rtol=1e-6, atol=1e-12)

@@ -149,8 +149,11 @@ class GlobalSlam:
         # how far the view moved: the metres driven, plus the radians turned times the typical range
         # of a hit (a turn sweeps the scan's content across the sensor as a drive of that length does)
         view = 0.0 if prev is None else prev["view"] + step + self._mean_range * turn
+        # what local SLAM could not vouch for along its chain so far (variances summed, as the doubt
+        # of independent steps): a submap built across such steps is as unsure inside
+        doubted = np.zeros(2) if prev is None else prev["doubted"] + np.square(doubt)
         self.drift.add(j, step, *doubt)
-        self.nodes[j] = {"local": local_pose, "time": scan.timestamp, "path": path, "view": view,
+        self.nodes[j] = {"local": local_pose, "time": scan.timestamp, "path": path, "view": view, "doubted": doubted,
                          "stamp": scan.timestamp_text or f"{scan.timestamp:.9f}",
                          "points": loop_points(hits, self.lc.voxel_filter_size, self.lc.adaptive_voxel_min_points,
                                                      self.lc.adaptive_voxel_max_length)}
@@ -190,9 +193,11 @@ class GlobalSlam:
                 self.submap_anchor[k] = j
             a = self.submap_anchor[k]
             if a != j:
+                dt, dr = doubted - self.nodes[a]["doubted"]
                 self.graph.add_intra(a, j, between(self.submap_local[k], local_pose),
                                      cov + self._drift_covariance(self.nodes[j]["path"] - self.nodes[a]["path"],
-                                                                  self.nodes[j]["view"] - self.nodes[a]["view"]))
+                                                                  self.nodes[j]["view"] - self.nodes[a]["view"])
+                                     + np.diag([dt, dt, dr]))
         if self.lc.enabled and self._sample(j, local_pose):
             self._search_node(j, submaps)
         self.since_optimize += 1

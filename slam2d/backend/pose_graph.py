@@ -4,7 +4,8 @@ Variables are node poses in the map frame; a submap's pose is the pose of its fi
 (the node whose local pose started it), so a submap needs no variable of its own. Factors:
 a prior on the first node; node-in-submap constraints from local SLAM between a submap's
 first node and each node inserted into it (their noise from the real-time matcher's
-covariance, in the node's frame); local SLAM's step between consecutive nodes, known to a
+covariance, in the node's frame, plus the submap's drift and what local SLAM could not vouch for
+since its first node); local SLAM's step between consecutive nodes, known to a
 match's floor plus what local SLAM could not vouch for (``GlobalSlam.add_node``; where local SLAM
 started afresh, the only link); loop-closure constraints with their own covariance from the match,
 under a Huber robust noise model. ``optimize`` solves from the current estimate, either by batch
