@@ -577,7 +577,8 @@ class LocalSlam:
                     self.untrusted_in_a_row = 0
                 elif not m.on_edge and lin <= rt.recovery_linear_window:
                     # a clear peak inside the window that scores low: the scan sees new ground or little
-                    # of the submap; mapped, counted, and loose in the pose graph (no covariance)
+                    # of the submap; mapped, counted, and loose in the pose graph (no covariance; its
+                    # step as loose as its score surface: ``_step_doubt``)
                     quality = "weak"
                     self.num_matched += 1
                     self.num_weak += 1
