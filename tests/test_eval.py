@@ -369,7 +369,7 @@ def test_loops_ground_truth_of_the_simulator(tmp_path):
     assert g["final_graph"]["unknown"] == 0 and g["recall"]["episodes"] >= 1
     # every constraint the ground truth calls false is put to the raw scans (the log read again)
     fb = g["final_graph"]["false_by_scans"]
-    assert set(fb) == {"constraint", "ground_truth", "undecided"} and sum(fb.values()) == g["final_graph"]["false"]
+    assert set(fb) == {"constraint", "ground_truth", "both", "undecided"} and sum(fb.values()) == g["final_graph"]["false"]
     assert len(g["disagreeing"]) == g["final_graph"]["false"] and all("scan_check" in d for d in g["disagreeing"])
 
 

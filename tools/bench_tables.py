@@ -149,7 +149,7 @@ def harsh_table(rows) -> str:
 
 def sparse_table(rows) -> str:
     target = TARGETS["sparse_ate_rmse_m"]
-    lines = [f"| dataset (sparse) | system | scans | wall s | peak RSS MB | ATE RMSE m | target ≤ {target} m | met | scale (Sim(2)); ATE RMSE after it m | ATE RMSE over the seeds: median (min–max) m; seeds whose health is not OK | loops accepted / final / searched | loop precision vs ground truth, final graph (all accepted; the other seeds' final graphs) | its misses, by the raw scans: loop right / truth right / undecided | loop precision vs slam2d's run of the raw log, final graph (the other seeds') | recall (revisit episodes closed) | free-space violation, all scans / revisits: slam2d; ground truth; disputed scans | health |",
+    lines = [f"| dataset (sparse) | system | scans | wall s | peak RSS MB | ATE RMSE m | target ≤ {target} m | met | scale (Sim(2)); ATE RMSE after it m | ATE RMSE over the seeds: median (min–max) m; seeds whose health is not OK | loops accepted / final / searched | loop precision vs ground truth, final graph (all accepted; the other seeds' final graphs) | its misses, by the raw scans: loop right / truth right / both fit / undecided | loop precision vs slam2d's run of the raw log, final graph (the other seeds') | recall (revisit episodes closed) | free-space violation, all scans / revisits: slam2d; ground truth; disputed scans | health |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
         n, s = row["dataset"], row["slam2d"]
@@ -162,7 +162,7 @@ def sparse_table(rows) -> str:
             prec = f"{_pct(g['final_graph'])} ({_pct(g['accepted'])}){_other_seeds(s.get('loops_vs_ground_truth_by_seed'))}"
             b = g["final_graph"].get("false_by_scans")
             if b is not None:
-                by_scans = f"{b['constraint']} / {b['ground_truth']} / {b['undecided']}"
+                by_scans = f"{b['constraint']} / {b['ground_truth']} / {b.get('both', '—')} / {b['undecided']}"
             rc = g["recall"]
             rec = f"{rc['closed']} of {rc['episodes']}"
         lines.append(f"| {n} | slam2d ({s['mode']}) | {s['scans']} | {s['wall_s']:.1f} | {s['peak_rss_mb']:.0f} | "

@@ -219,7 +219,7 @@ def loops_vs_ground_truth(run_dir: Path, gt_path: Path, check_scans: bool = True
     check_stamps(cs, t, run_dir / "constraints.jsonl")
     gt = load_ground_truth(gt_path, t)
     out = {"matching": gt.matching, **classify_ground_truth(cs, gt.poses, gt.scan_indices, *LOOP_TOLERANCE, Thresholds())}
-    checked = check_run(run_dir, cs, poses, gt.poses) if check_scans else None
+    checked = check_run(run_dir, cs, poses, gt.poses, agree=LOOP_TOLERANCE) if check_scans else None
     if checked is not None:  # where the ground truth calls a constraint false: which side the raw scans take
         out["final_graph"]["false_by_scans"] = checked
         out["disagreeing"] = disagreeing(cs, gt.poses)  # now with the verdicts

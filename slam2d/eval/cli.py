@@ -167,7 +167,8 @@ def _loops(args) -> int:
         out["score_histogram"] = score_histogram(constraints, key)
         from slam2d.eval.scan_check import check_run
 
-        checked = check_run(run_dir, constraints, poses, gt.poses, args.run_input)
+        checked = check_run(run_dir, constraints, poses, gt.poses, args.run_input,
+                            (args.tolerance_trans, args.tolerance_rot))
         if checked is not None:  # where the ground truth calls a constraint false, which side the scans take
             out["ground_truth"]["final_graph"]["false_by_scans"] = checked
             out["ground_truth"]["disagreeing"] = disagreeing(constraints, gt.poses)  # now with the verdicts
@@ -180,7 +181,7 @@ def _loops(args) -> int:
         for d in out.get("ground_truth", {}).get("disagreeing", []):
             check = d.get("scan_check", {})
             says = f"; the raw scans: {check['verdict']} ({check['share_constraint']} vs {check['share_ground_truth']} " \
-                   f"of the hits on the place)" if check else ""
+                   f"of the hits on the place{', then registered' if check.get('by') else ''})" if check else ""
             print(f"ground_truth.disagreeing: submap {d['submap']}, scans {d['from_scan']} -> {d['to_scan']}, "
                   f"{d['off_m']} m / {d['off_deg']} deg off the ground truth, score {d['score']}{says}")
     return 0
