@@ -43,6 +43,9 @@ def _add_input(p):
                    "ROS 2 bag (its folder, or its .db3/.mcap file)")
     p.add_argument("--scan-topic", default=None, help="ROS input: LaserScan topic (default: the only one)")
     p.add_argument("--odom-topic", default=None, help="ROS input: Odometry topic (default: the only one, if any)")
+    p.add_argument("--scan-period", type=float, default=None, metavar="S",
+                   help="CARMEN input whose timestamps are unusable (a 32-bit wrap, stamps going back): ignore "
+                        "them and stamp the scans S seconds apart in file order")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -116,7 +119,8 @@ def _progress(total, disable, desc):
 def _source(args):
     from slam2d.io.source import open_source
 
-    return open_source(args.input, scan_topic=args.scan_topic, odom_topic=args.odom_topic)
+    return open_source(args.input, scan_topic=args.scan_topic, odom_topic=args.odom_topic,
+                       scan_period=args.scan_period)
 
 
 def _limited(source, n):

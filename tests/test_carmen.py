@@ -433,3 +433,34 @@ def test_range_tokens_parse_as_python_floats():
     assert _float_array("x.clf", 3, tokens[:2], "remission", np.float32).tolist() == np.array([1.5, 81.83], np.float32).tolist()
     with pytest.raises(InputError, match="x.clf:3: non-numeric range reading '0x10'"):
         _float_array("x.clf", 3, ["1.0", "0x10"], "range reading")
+
+
+def test_scan_period_restamps_a_log_whose_timestamps_are_unusable(tmp_path, flaser_line):
+    """The MIT Infinite Corridor's corrected log: a few negative stamps, then 4.29497e+09 on every scan (a
+    32-bit wrap). Read as it is, the jump back is an error that names the way out; with
+    ``scan_period`` the scans are stamped that far apart in file order, and nothing else changes."""
+    stamps = ["-1.392", "-0.446", "-1.82", "4.29497e+09", "4.29497e+09"]
+    text = "".join(flaser_line([1.0 + k, 2.0], ts=t) for k, t in enumerate(stamps))
+    p = write(tmp_path, text)
+    with pytest.raises(InputError) as e:
+        list(CarmenLog(p))
+    assert e.value.line == 3 and "--scan-period" in str(e.value) and "\n" not in str(e.value)
+    scans = list(CarmenLog(p, scan_period=0.2))
+    assert [s.timestamp for s in scans] == pytest.approx([0.0, 0.2, 0.4, 0.6, 0.8], abs=1e-12)
+    assert [s.timestamp_text for s in scans] == ["0.000000", "0.200000", "0.400000", "0.600000", "0.800000"]
+    assert [float(s.ranges[0]) for s in scans] == [1.0, 2.0, 3.0, 4.0, 5.0]
+    assert [s.index for s in scans] == list(range(5))
+
+
+def test_scan_period_is_refused_where_it_cannot_be_right(tmp_path):
+    from conftest import BUNDLED
+
+    log = write(tmp_path, "ODOM 0 0 0 0 0 0 100.0 nohost 0.1\n"
+                          "RAWLASER1 0 -1.5 3.0 0.5 30.0 0.01 0 4 1 2 3 4 0 100.0 nohost 0.1\n")
+    with pytest.raises(InputError, match="RAWLASER lines"):  # odometry found by timestamp
+        list(CarmenLog(log, scan_period=0.1))
+    with pytest.raises(InputError, match="CARMEN logs only"):  # ROS input: odometry and TF by stamp
+        open_source(BUNDLED, scan_period=0.1)
+    for bad in (0.0, -0.1, float("nan")):
+        with pytest.raises(InputError, match="positive number of seconds"):
+            CarmenLog(log, scan_period=bad)

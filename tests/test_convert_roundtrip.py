@@ -133,3 +133,27 @@ def test_stamps_a_ros_time_cannot_hold_are_one_line(tmp_path, capsys):
         assert f"{log}: record 0: scan stamp 4.29497e+09 is outside the seconds a ROS time holds" in err, err
         assert err.count("\n") == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == ["wrapped.clf"]
+
+
+def test_a_log_with_unusable_stamps_runs_with_scan_period(tmp_path, capsys):
+    """The simulated log with its stamps replaced by a 32-bit wrap (4.29497e+09) after three negative
+    ones: `slam2d run` stops with one line naming the line and --scan-period; with --scan-period 0.2
+    (the log's true period) every pose is the one of the log with good stamps, stamped k × 0.2 s."""
+    good = tmp_path / "good.clf"
+    sim_carmen(good, n=120)
+    lines = good.read_text().splitlines(keepends=True)
+    broken = tmp_path / "broken.clf"
+    with open(broken, "w") as f:
+        for k, line in enumerate(lines):
+            parts = line.split()
+            stamp = ("-1.392", "-0.446", "-1.82")[k] if k < 3 else "4.29497e+09"
+            parts[-3] = parts[-1] = stamp
+            f.write(" ".join(parts) + "\n")
+    assert main(["run", str(broken), "--out", str(tmp_path / "x"), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{broken}:3:" in err[0] and "--scan-period" in err[0], err
+    assert not (tmp_path / "x" / "trajectory.txt").exists()
+    stamps, poses, _ = run(broken, tmp_path / "restamped", "--scan-period", "0.2")
+    np.testing.assert_allclose(stamps, 0.2 * np.arange(120), rtol=0, atol=1e-9)
+    _, good_poses, _ = run(good, tmp_path / "good")
+    np.testing.assert_allclose(poses, good_poses, rtol=0, atol=1e-6)

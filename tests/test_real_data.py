@@ -275,3 +275,21 @@ def test_fr_clinic_loops_through_the_hall_bend_the_weak_matches_back(tmp_path):
     ends = [sorted((c["from_scan"], c["to_scan"])) for c in records if c["in_final_graph"]]
     hall = [(a, b) for a, b in ends if 300 <= a <= 370 and 2357 <= b <= 2402]
     assert len(hall) >= 5, hall
+
+
+def test_the_corridor_log_with_unusable_stamps_runs_with_scan_period(tmp_path):
+    """The MIT Infinite Corridor's corrected log (``../shared/datasets/sparse``; its SOURCE.md: the stamps
+    are a 32-bit wrap after four negative ones). As it is: one line naming the line and the option;
+    with --scan-period: a map, and a trajectory stamped in file order."""
+    from conftest import SHARED
+
+    log = SHARED / "sparse" / "infinite-corridor" / "infinite-corridor-corrected.log.gz"
+    if not log.exists():
+        pytest.skip(f"real-data test: {log} not found (../shared/datasets is not beside the repo)")
+    r = slam2d("run", log, "--out", tmp_path / "x", "--no-progress", "--max-scans", "300")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "--scan-period" in r.stderr and f"{log}:" in r.stderr
+    r = slam2d("run", log, "--out", tmp_path / "y", "--no-progress", "--max-scans", "300", "--scan-period", "0.2")
+    assert r.returncode == 0, r.stderr
+    stamps, _, _ = read_tum(tmp_path / "y" / "trajectory.txt")
+    np.testing.assert_allclose(stamps, 0.2 * np.arange(300), atol=1e-9)
+    assert (tmp_path / "y" / "map.pgm").exists()

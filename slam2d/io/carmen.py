@@ -19,7 +19,9 @@ Message formats (CARMEN 0.7 logger):
 * ``ODOM x y theta tv rv accel ipc_ts host logger_ts``, ``PARAM name value ...``, ``#`` comments;
   other messages (TRUEPOS, NEFF, SYNC, ...) are skipped.
 
-The scan timestamp is ``ipc_ts`` (the Freiburg benchmark relations use it). Readings at
+The scan timestamp is ``ipc_ts`` (the Freiburg benchmark relations use it); a log whose timestamps
+are unusable (a 32-bit wrap, negative stamps) is read with ``scan_period``: every scan stamped that
+many seconds after the one before it, in file order. Readings at
 or above the sensor's no-return threshold are flagged invalid and never become hits. The
 threshold is a fact of the data, decided by a first pass (``NoReturnSurvey``): a laser that
 sees nothing writes one fixed number, so a no-return value shows up as a *spike* in the
@@ -427,10 +429,14 @@ def _parse_laser(path, lineno, parts) -> _Parsed:
 
 
 class CarmenLog:
-    """Lazy iterator over the scans of a CARMEN log."""
+    """Lazy iterator over the scans of a CARMEN log. ``scan_period`` [s]: ignore the log's timestamps and
+    stamp scan k at k × ``scan_period`` (module docstring)."""
 
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, scan_period: float | None = None):
         self.path = Path(path)
+        if scan_period is not None and not (math.isfinite(scan_period) and scan_period > 0):
+            raise InputError(path, f"--scan-period must be a positive number of seconds, not {scan_period}")
+        self.scan_period = scan_period
         self._facts: CarmenFacts | None = None
         # the first pass keeps its parsed laser records (memory up to a budget, then a temporary
         # file), so the second pass neither decompresses nor parses again
@@ -527,10 +533,17 @@ class CarmenLog:
     def __iter__(self):
         facts = self.facts()
         no_return = facts.no_return_value
+        period = self.scan_period
+        if period is not None and facts.odom is not None and len(facts.odom):
+            raise InputError(self.path, "--scan-period cannot be used here: this log's scans have no pose of their own "
+                             "(RAWLASER lines), and their odometry comes from the ODOM lines by timestamp")
         prev_t = None
         for index, (lineno, p) in enumerate(self._laser_records()):
             if p.kind in _RAW_TYPES:  # no pose in the line: the robot's from the ODOM lines, the laser at its origin
                 p.robot_pose = p.laser_pose = odom_at(facts.odom, p.timestamp)
+            if period is not None:  # the log's stamps are unusable: file order, ``period`` apart
+                p.timestamp = index * period
+                p.timestamp_text = f"{p.timestamp:.6f}"
             yield self._to_scan(p, lineno, index, no_return, prev_t)
             prev_t = p.timestamp if prev_t is None else max(prev_t, p.timestamp)
 
@@ -540,7 +553,8 @@ class CarmenLog:
             raise InputError(path, f"timestamp {p.timestamp_text!r} is not finite", line=lineno)
         if prev_t is not None and p.timestamp < prev_t - MAX_TIME_REVERSAL:
             raise InputError(path, f"timestamp {p.timestamp_text} goes back {prev_t - p.timestamp:.3f} s "
-                             f"(more than {MAX_TIME_REVERSAL} s) behind an earlier scan", line=lineno)
+                             f"(more than {MAX_TIME_REVERSAL} s) behind an earlier scan; if the log's timestamps are "
+                             f"unusable, --scan-period S stamps the scans S seconds apart in file order", line=lineno)
         if p.robot_pose is not None and not (np.all(np.isfinite(p.laser_pose)) and np.all(np.isfinite(p.robot_pose))):
             raise InputError(path, "pose field is not finite", line=lineno)
         r = p.ranges

@@ -43,11 +43,16 @@ def source_kind(path: str | Path) -> str:
     raise InputError(path, f"unknown file type: {KNOWN}")
 
 
-def open_source(path: str | Path, scan_topic: str | None = None, odom_topic: str | None = None):
-    """An iterable of `Scan` for a log (lazy; errors name the file and line or record)."""
+def open_source(path: str | Path, scan_topic: str | None = None, odom_topic: str | None = None,
+                scan_period: float | None = None):
+    """An iterable of `Scan` for a log (lazy; errors name the file and line or record). ``scan_period``:
+    a CARMEN log's scans stamped that many seconds apart in file order, its own timestamps ignored."""
     if not Path(path).exists():
         raise InputError(path, "no such file")
     kind = source_kind(path)
+    if scan_period is not None and kind != "carmen":
+        raise InputError(path, "--scan-period applies to CARMEN logs only (ROS input matches odometry and TF to "
+                         "scans by their stamps)")
     if kind == "mcap":
         from slam2d.io.mcap import McapLog
 
@@ -60,4 +65,4 @@ def open_source(path: str | Path, scan_topic: str | None = None, odom_topic: str
         raise InputError(path, "--scan-topic/--odom-topic apply to ROS input (MCAP, bags) only")
     from slam2d.io.carmen import CarmenLog
 
-    return CarmenLog(path)
+    return CarmenLog(path, scan_period=scan_period)
