@@ -23,6 +23,7 @@ EXAMPLES = """examples:
   slam2d convert ../shared/datasets/aces/aces.clf.bz2 aces.mcap
   slam2d convert ../shared/datasets/aces/aces.clf.bz2 aces.bag      # ROS 1 bag; a name without suffix: ROS 2 bag
   slam2d run robot.bag --out runs/robot --scan-topic /scan           # ROS 1 bag, ROS 2 bag folder, .db3, .mcap
+  slam2d run old.log.gz --out runs/old --scan-period 0.2            # a CARMEN log whose timestamps are broken
   slam2d simulate data/sim_office.mcap --seed 7
   slam2d eval relations runs/intel/trajectory.txt ../shared/datasets/intel/intel.relations
   slam2d dump-config > my.yaml
