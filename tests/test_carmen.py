@@ -464,3 +464,33 @@ def test_scan_period_is_refused_where_it_cannot_be_right(tmp_path):
     for bad in (0.0, -0.1, float("nan")):
         with pytest.raises(InputError, match="positive number of seconds"):
             CarmenLog(log, scan_period=bad)
+
+
+def test_a_front_and_a_rear_laser_each_keep_their_own_no_return_value(tmp_path):
+    """A log with an 81.9 m front laser (FLASER) and a 5.6 m rear one (RLASER): each writes its own
+    no-return value. Surveyed together, the front's spike alone was found (5.6 m lies far below the
+    log's maximum) and the rear's no-returns became walls at 5.6 m; each laser now has its own
+    threshold, and the front's returns beyond 5.6 m stay returns."""
+    rng = np.random.default_rng(0)
+    lines, front, rear = [], [], []
+    for k in range(300):
+        f = np.round(rng.uniform(0.5, 40.0, 180), 2)
+        f[rng.random(180) < 0.2] = 81.9
+        r = np.round(rng.uniform(0.3, 5.0, 180), 2)
+        r[rng.random(180) < 0.3] = 5.6
+        front.append(f)
+        rear.append(r)
+        lines.append("FLASER 180 " + " ".join(f"{v:.2f}" for v in f) + f" 0.2 0 0 0 0 0 {100 + 0.2 * k:.3f} h 0")
+        lines.append("RLASER 180 " + " ".join(f"{v:.2f}" for v in r) + f" -0.2 0 3.141593 0 0 0 {100.1 + 0.2 * k:.3f} h 0")
+    log = CarmenLog(write(tmp_path, "\n".join(lines) + "\n"))
+    facts = log.facts()
+    assert facts.no_return_values == {"FLASER": 81.9, "RLASER": 5.6}
+    assert {e["message"] for e in facts.no_return_evidence} == {"FLASER", "RLASER"}
+    scans = list(log)
+    assert len(scans) == 600
+    for k, s in enumerate(scans):
+        ranges = front[k // 2] if k % 2 == 0 else rear[k // 2]
+        expected = ranges >= (81.9 if k % 2 == 0 else 5.6)
+        np.testing.assert_array_equal(s.no_return, expected)
+        np.testing.assert_array_equal(s.valid, ~expected)
+    assert any(np.any((f > 5.6) & (f < 81.9)) for f in front)  # far front returns exist, and stayed valid

@@ -28,7 +28,10 @@ sees nothing writes one fixed number, so a no-return value shows up as a *spike*
 histogram of readings near the log's maximum — one exact value far more frequent than the
 readings around it (81.83 m on Intel, 50.0 m on ACES; fr-clinic has two, 81.83 and 81.91).
 The maximum range stated in a ROBOTLASER1 line is a no-return value too. The lowest of
-these is the threshold. The first pass keeps the parsed records for
+these is the threshold. Each laser message is a sensor of its own and is surveyed on its own
+(``LaserFacts``): a log with a front and a rear laser (``FLASER`` and ``RLASER``) may hold two
+models whose no-return values differ, and one laser's threshold would make the other's
+no-returns hits or its far returns no-returns. The first pass keeps the parsed records for
 the second pass in memory up to ``RECORD_MEMORY_BUDGET`` bytes and in an unnamed temporary
 file beyond, so memory stays bounded however long the log is.
 """
@@ -301,6 +304,32 @@ def odom_at(odom: np.ndarray, t: float) -> np.ndarray | None:
 
 
 @dataclass
+class LaserFacts:
+    """What the first pass learns of one laser message (``FLASER``, ``RLASER``, ...): a log with a front
+    and a rear laser holds two sensors, and each has its own no-return values."""
+
+    kind: str
+    num_readings: int = 0
+    line_max_range: float | None = None
+    survey: NoReturnSurvey = field(default_factory=NoReturnSurvey)
+
+    @property
+    def no_return_evidence(self) -> list[dict]:
+        """Why each of this laser's no-return values was chosen."""
+        out = [dict(s, why="a repeated reading near the laser's maximum (a spike over the readings around it)")
+               for s in self.survey.spikes(self.num_readings)]
+        if self.line_max_range is not None:
+            out.append({"value": self.line_max_range, "why": f"the max_range field of the {self.kind} lines"})
+        return out
+
+    @property
+    def no_return_value(self) -> float | None:
+        """Every reading at or above it is a no-return (the lowest no-return value)."""
+        cands = [e["value"] for e in self.no_return_evidence]
+        return min(cands) if cands else None
+
+
+@dataclass
 class CarmenFacts:
     """What a first pass over the log learns."""
 
@@ -312,28 +341,37 @@ class CarmenFacts:
     odometry: str = "the pose fields of the laser lines"
     #: ``ODOM`` (timestamp, x, y, θ), kept to interpolate the robot pose of ``RAWLASERn`` scans
     odom: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
-    num_readings: int = 0
-    line_max_range: float | None = None
     params: dict = field(default_factory=dict)
-    survey: NoReturnSurvey = field(default_factory=NoReturnSurvey)
+    #: per laser message read, in the order first seen
+    lasers: dict = field(default_factory=dict)
+
+    def laser(self, kind: str) -> LaserFacts:
+        got = self.lasers.get(kind)
+        if got is None:
+            got = self.lasers[kind] = LaserFacts(kind)
+        return got
 
     @property
     def max_reading(self) -> float:
-        return self.survey.max_reading
+        return max((las.survey.max_reading for las in self.lasers.values()), default=-math.inf)
 
     @property
     def no_return_evidence(self) -> list[dict]:
-        """Why each no-return value was chosen (``slam2d info`` prints it)."""
-        out = [dict(s, why="a repeated reading near the log's maximum (a spike over the readings around it)")
-               for s in self.survey.spikes(self.num_readings)]
-        if self.line_max_range is not None:
-            out.append({"value": self.line_max_range, "why": f"the max_range field of the {self.laser_messages} lines"})
-        return out
+        """Why each no-return value was chosen (``slam2d info`` prints it); with more than one laser
+        message, each entry names its ``message``."""
+        several = len(self.lasers) > 1
+        return [dict(e, message=k) if several else e for k, las in self.lasers.items() for e in las.no_return_evidence]
+
+    @property
+    def no_return_values(self) -> dict:
+        """The no-return threshold of each laser message."""
+        return {k: las.no_return_value for k, las in self.lasers.items()}
 
     @property
     def no_return_value(self) -> float | None:
-        """The no-return threshold: every reading at or above it is a no-return (the lowest no-return value)."""
-        cands = [e["value"] for e in self.no_return_evidence]
+        """The no-return threshold of a log with one laser message; with several, the lowest of theirs
+        (``no_return_values`` has each: the scans of each are read with their own)."""
+        cands = [v for v in self.no_return_values.values() if v is not None]
         return min(cands) if cands else None
 
 
@@ -480,10 +518,11 @@ class CarmenLog:
             kinds.add(kind)
             spool.append(lineno, p)
             f.num_scans += 1
-            f.num_readings += p.ranges.size
+            las = f.laser(kind)
+            las.num_readings += p.ranges.size
             if p.max_range is not None:
-                f.line_max_range = p.max_range if f.line_max_range is None else min(f.line_max_range, p.max_range)
-            f.survey.add(p.ranges)
+                las.line_max_range = p.max_range if las.line_max_range is None else min(las.line_max_range, p.max_range)
+            las.survey.add(p.ranges)
         if f.num_scans == 0:
             spool.close()
             best = max(_RAW_TYPES, key=lambda k: raw_counts[k])  # the first of the most frequent
@@ -532,7 +571,7 @@ class CarmenLog:
     # ---- second pass
     def __iter__(self):
         facts = self.facts()
-        no_return = facts.no_return_value
+        no_returns = facts.no_return_values  # each laser message its own (a front and a rear laser)
         period = self.scan_period
         if period is not None and facts.odom is not None and len(facts.odom):
             raise InputError(self.path, "--scan-period cannot be used here: this log's scans have no pose of their own "
@@ -544,7 +583,7 @@ class CarmenLog:
             if period is not None:  # the log's stamps are unusable: file order, ``period`` apart
                 p.timestamp = index * period
                 p.timestamp_text = f"{p.timestamp:.6f}"
-            yield self._to_scan(p, lineno, index, no_return, prev_t)
+            yield self._to_scan(p, lineno, index, no_returns.get(p.kind), prev_t)
             prev_t = p.timestamp if prev_t is None else max(prev_t, p.timestamp)
 
     def _to_scan(self, p: _Parsed, lineno: int, index: int, no_return, prev_t) -> Scan:
