@@ -226,8 +226,8 @@ def cmd_info(args) -> int:
         info["laser_messages"] = f.laser_messages
         info["odometry_from"] = f.odometry
         info["no_return_threshold_m"] = f.no_return_value
-        if len(f.lasers) > 1:  # a front and a rear laser: each read with its own
-            info["no_return_by_message_m"] = f.no_return_values
+        if f.skipped_lasers:  # a front and a rear laser: one is read
+            info["laser_messages_skipped"] = f.skipped_lasers
         info["no_return_evidence"] = f.no_return_evidence
     mount = getattr(source, "laser_mount", None)
     if mount is not None:  # ROS: where the odometry came from; whether the laser hangs upside down (mirrored)

@@ -466,31 +466,38 @@ def test_scan_period_is_refused_where_it_cannot_be_right(tmp_path):
             CarmenLog(log, scan_period=bad)
 
 
-def test_a_front_and_a_rear_laser_each_keep_their_own_no_return_value(tmp_path):
-    """A log with an 81.9 m front laser (FLASER) and a 5.6 m rear one (RLASER): each writes its own
-    no-return value. Surveyed together, the front's spike alone was found (5.6 m lies far below the
-    log's maximum) and the rear's no-returns became walls at 5.6 m; each laser now has its own
-    threshold, and the front's returns beyond 5.6 m stay returns."""
+def _front_and_rear(tmp_path, n_front=300, n_rear=300):
+    """A 20 m front laser (FLASER, no-return 20.0) and an 81.9 m rear one (RLASER, no-return 81.9)."""
     rng = np.random.default_rng(0)
-    lines, front, rear = [], [], []
-    for k in range(300):
-        f = np.round(rng.uniform(0.5, 40.0, 180), 2)
-        f[rng.random(180) < 0.2] = 81.9
-        r = np.round(rng.uniform(0.3, 5.0, 180), 2)
-        r[rng.random(180) < 0.3] = 5.6
-        front.append(f)
-        rear.append(r)
-        lines.append("FLASER 180 " + " ".join(f"{v:.2f}" for v in f) + f" 0.2 0 0 0 0 0 {100 + 0.2 * k:.3f} h 0")
-        lines.append("RLASER 180 " + " ".join(f"{v:.2f}" for v in r) + f" -0.2 0 3.141593 0 0 0 {100.1 + 0.2 * k:.3f} h 0")
-    log = CarmenLog(write(tmp_path, "\n".join(lines) + "\n"))
-    facts = log.facts()
-    assert facts.no_return_values == {"FLASER": 81.9, "RLASER": 5.6}
-    assert {e["message"] for e in facts.no_return_evidence} == {"FLASER", "RLASER"}
-    scans = list(log)
-    assert len(scans) == 600
-    for k, s in enumerate(scans):
-        ranges = front[k // 2] if k % 2 == 0 else rear[k // 2]
-        expected = ranges >= (81.9 if k % 2 == 0 else 5.6)
-        np.testing.assert_array_equal(s.no_return, expected)
-        np.testing.assert_array_equal(s.valid, ~expected)
-    assert any(np.any((f > 5.6) & (f < 81.9)) for f in front)  # far front returns exist, and stayed valid
+    lines, front = [], []
+    for k in range(max(n_front, n_rear)):
+        if k < n_front:
+            f = np.round(rng.uniform(0.5, 18.0, 180), 2)
+            f[rng.random(180) < 0.2] = 20.0
+            front.append(f)
+            lines.append("FLASER 180 " + " ".join(f"{v:.2f}" for v in f) + f" 0.2 0 0 0 0 0 {100 + 0.2 * k:.3f} h 0")
+        if k < n_rear:
+            r = np.round(rng.uniform(0.3, 40.0, 180), 2)
+            r[rng.random(180) < 0.3] = 81.9
+            lines.append("RLASER 180 " + " ".join(f"{v:.2f}" for v in r) + f" -0.2 0 3.141593 0 0 0 {100.1 + 0.2 * k:.3f} h 0")
+    return write(tmp_path, "\n".join(lines) + "\n"), front
+
+
+def test_a_log_with_a_front_and_a_rear_laser_is_read_from_one(tmp_path):
+    """slam2d maps with one laser: of a front and a rear laser with as many lines the front is read, and
+    the rear skipped and said so. The front is judged by its own readings: its no-return value 20.0 lies
+    below 0.9 × the rear's 81.9, where a survey of both lasers' readings never looked."""
+    log, front = _front_and_rear(tmp_path)
+    facts = CarmenLog(log).facts()
+    assert facts.laser_messages == "FLASER" and facts.skipped_lasers == {"RLASER": 300}
+    assert facts.num_scans == 300 and facts.no_return_value == 20.0
+    scans = list(CarmenLog(log))
+    assert len(scans) == 300 and [s.index for s in scans] == list(range(300))
+    for s, f in zip(scans, front):
+        np.testing.assert_array_equal(s.ranges, np.float32(f))
+        np.testing.assert_array_equal(s.no_return, f >= 20.0)
+    # more rear lines than front ones: the rear is read
+    log, _ = _front_and_rear(tmp_path, n_front=100, n_rear=300)
+    facts = CarmenLog(log).facts()
+    assert facts.laser_messages == "RLASER" and facts.skipped_lasers == {"FLASER": 100}
+    assert facts.no_return_value == 81.9 and len(list(CarmenLog(log))) == 300

@@ -28,10 +28,17 @@ sees nothing writes one fixed number, so a no-return value shows up as a *spike*
 histogram of readings near the log's maximum — one exact value far more frequent than the
 readings around it (81.83 m on Intel, 50.0 m on ACES; fr-clinic has two, 81.83 and 81.91).
 The maximum range stated in a ROBOTLASER1 line is a no-return value too. The lowest of
-these is the threshold. Each laser message is a sensor of its own and is surveyed on its own
-(``LaserFacts``): a log with a front and a rear laser (``FLASER`` and ``RLASER``) may hold two
-models whose no-return values differ, and one laser's threshold would make the other's
-no-returns hits or its far returns no-returns. The first pass keeps the parsed records for
+these is the threshold.
+
+slam2d maps with one laser. A log with more than one laser message that carries poses (a front
+and a rear laser, ``FLASER`` and ``RLASER``; or one laser logged both as ``FLASER`` and as
+``ROBOTLASER1``) is read from the one with the most lines (ties: ``ROBOTLASER1``, ``FLASER``,
+``RLASER``), as a log of ``RAWLASERn`` lines is, and says which it skipped. Two lasers read as
+one stream of scans look to local SLAM like a robot whose odometry stalls at every other scan
+(the rear scan carries the front scan's odometry): on the simulator split into a front and a
+rear laser, 0.048 m ATE with the front alone, 0.60 m with both. Each laser message is surveyed
+on its own (``LaserFacts``): the one read is judged by its own readings, not by another
+model's maximum. The first pass keeps the parsed records for
 the second pass in memory up to ``RECORD_MEMORY_BUDGET`` bytes and in an unnamed temporary
 file beyond, so memory stays bounded however long the log is.
 """
@@ -71,6 +78,8 @@ _LASER_TYPES = ("FLASER", "RLASER", "ROBOTLASER1")
 #: lasers without a pose, read when a log holds none of ``_LASER_TYPES`` (module docstring)
 _RAW_TYPES = ("RAWLASER1", "RAWLASER2", "RAWLASER3", "RAWLASER4")
 _KINDS = _LASER_TYPES + _RAW_TYPES
+#: of several laser messages with as many lines, the one read (module docstring)
+_PREFERRED = ("ROBOTLASER1", "FLASER", "RLASER")
 #: parsed laser records beyond this many bytes go to a temporary file (``_RecordStore``)
 RECORD_MEMORY_BUDGET = 256 * 1024 * 1024
 
@@ -309,6 +318,7 @@ class LaserFacts:
     and a rear laser holds two sensors, and each has its own no-return values."""
 
     kind: str
+    num_scans: int = 0
     num_readings: int = 0
     line_max_range: float | None = None
     survey: NoReturnSurvey = field(default_factory=NoReturnSurvey)
@@ -342,8 +352,10 @@ class CarmenFacts:
     #: ``ODOM`` (timestamp, x, y, θ), kept to interpolate the robot pose of ``RAWLASERn`` scans
     odom: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
     params: dict = field(default_factory=dict)
-    #: per laser message read, in the order first seen
+    #: per laser message, in the order first seen; after the first pass, only the one read
     lasers: dict = field(default_factory=dict)
+    #: laser messages with poses that were not read (slam2d maps with one laser): lines of each
+    skipped_lasers: dict = field(default_factory=dict)
 
     def laser(self, kind: str) -> LaserFacts:
         got = self.lasers.get(kind)
@@ -356,23 +368,19 @@ class CarmenFacts:
         return max((las.survey.max_reading for las in self.lasers.values()), default=-math.inf)
 
     @property
-    def no_return_evidence(self) -> list[dict]:
-        """Why each no-return value was chosen (``slam2d info`` prints it); with more than one laser
-        message, each entry names its ``message``."""
-        several = len(self.lasers) > 1
-        return [dict(e, message=k) if several else e for k, las in self.lasers.items() for e in las.no_return_evidence]
+    def laser_kind(self) -> str:
+        """The laser message read."""
+        return next(iter(self.lasers))
 
     @property
-    def no_return_values(self) -> dict:
-        """The no-return threshold of each laser message."""
-        return {k: las.no_return_value for k, las in self.lasers.items()}
+    def no_return_evidence(self) -> list[dict]:
+        """Why each no-return value was chosen (``slam2d info`` prints it)."""
+        return self.lasers[self.laser_kind].no_return_evidence if self.lasers else []
 
     @property
     def no_return_value(self) -> float | None:
-        """The no-return threshold of a log with one laser message; with several, the lowest of theirs
-        (``no_return_values`` has each: the scans of each are read with their own)."""
-        cands = [v for v in self.no_return_values.values() if v is not None]
-        return min(cands) if cands else None
+        """The no-return threshold of the laser read: every reading at or above it is a no-return."""
+        return self.lasers[self.laser_kind].no_return_value if self.lasers else None
 
 
 def _floats(path, lineno, tokens, what):
@@ -495,7 +503,6 @@ class CarmenLog:
         f = CarmenFacts()
         spool = _RecordStore()
         raw_counts = dict.fromkeys(_RAW_TYPES, 0)
-        kinds = set()
         odom = array("d")
         for lineno, kind, parts in self._records():
             if kind == "PARAM":
@@ -515,21 +522,27 @@ class CarmenLog:
             elif raw is not None:
                 continue
             p = _parse_laser(self.path, lineno, parts)
-            kinds.add(kind)
             spool.append(lineno, p)
-            f.num_scans += 1
             las = f.laser(kind)
+            las.num_scans += 1
             las.num_readings += p.ranges.size
             if p.max_range is not None:
                 las.line_max_range = p.max_range if las.line_max_range is None else min(las.line_max_range, p.max_range)
             las.survey.add(p.ranges)
-        if f.num_scans == 0:
+        if not f.lasers:
             spool.close()
             best = max(_RAW_TYPES, key=lambda k: raw_counts[k])  # the first of the most frequent
             if raw is None and raw_counts[best]:
                 return self._survey(best)
             raise InputError(self.path, "no laser scans (FLASER, RLASER, ROBOTLASER1 or RAWLASER1-4 lines) in the file")
-        f.laser_messages = ", ".join(k for k in _KINDS if k in kinds)
+        if len(f.lasers) > 1:  # one laser is read (module docstring)
+            chosen = max(f.lasers, key=lambda k: (f.lasers[k].num_scans, -_PREFERRED.index(k)))
+            f.skipped_lasers = {k: las.num_scans for k, las in f.lasers.items() if k != chosen}
+            log.warning("%s: reading %s (%d lines); skipping %s: slam2d maps with one laser", self.path, chosen,
+                     f.lasers[chosen].num_scans, ", ".join(f"{k} ({n} lines)" for k, n in f.skipped_lasers.items()))
+            f.lasers = {chosen: f.lasers[chosen]}
+        f.num_scans = f.lasers[f.laser_kind].num_scans
+        f.laser_messages = f.laser_kind
         if raw is not None:
             o = np.frombuffer(odom, dtype=np.float64).reshape(-1, 7)
             f.odom = np.ascontiguousarray(o[np.argsort(o[:, 6], kind="stable")][:, [6, 0, 1, 2]])
@@ -571,19 +584,20 @@ class CarmenLog:
     # ---- second pass
     def __iter__(self):
         facts = self.facts()
-        no_returns = facts.no_return_values  # each laser message its own (a front and a rear laser)
+        no_return = facts.no_return_value
+        kind = facts.laser_kind  # the one laser read (module docstring)
         period = self.scan_period
         if period is not None and facts.odom is not None and len(facts.odom):
             raise InputError(self.path, "--scan-period cannot be used here: this log's scans have no pose of their own "
                              "(RAWLASER lines), and their odometry comes from the ODOM lines by timestamp")
         prev_t = None
-        for index, (lineno, p) in enumerate(self._laser_records()):
+        for index, (lineno, p) in enumerate((lineno, p) for lineno, p in self._laser_records() if p.kind == kind):
             if p.kind in _RAW_TYPES:  # no pose in the line: the robot's from the ODOM lines, the laser at its origin
                 p.robot_pose = p.laser_pose = odom_at(facts.odom, p.timestamp)
             if period is not None:  # the log's stamps are unusable: file order, ``period`` apart
                 p.timestamp = index * period
                 p.timestamp_text = f"{p.timestamp:.6f}"
-            yield self._to_scan(p, lineno, index, no_returns.get(p.kind), prev_t)
+            yield self._to_scan(p, lineno, index, no_return, prev_t)
             prev_t = p.timestamp if prev_t is None else max(prev_t, p.timestamp)
 
     def _to_scan(self, p: _Parsed, lineno: int, index: int, no_return, prev_t) -> Scan:
