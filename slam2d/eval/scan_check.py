@@ -21,7 +21,7 @@ little more than the loop evaluation's tolerance. There the scans are registered
 (``register``: point-to-line ICP, Censi 2008's metric, from each hypothesis's placement, the
 correspondence distance halved down to a few times the tolerance): when both starts reach the same relative
 pose, that pose is the scans' own answer, and the verdict names the hypothesis within the loop
-evaluation's tolerance (``agree``: 0.3 m / 2° by default) of it while the other is not, and
+evaluation's tolerance (``agree``, by default ``AGREE``: 0.3 m / 2°) of it while the other is not, and
 ``both`` when each is: the two differ by more than the tolerance but by less than the scans
 resolve, so the scans call neither false. The place is built by each hypothesis's placement of
 i's neighbours, and the verdict must be the same on both places. Starts that end apart (a
@@ -33,6 +33,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from slam2d.eval.loops import Thresholds
 from slam2d.geometry import between, transform_points
 
 #: scans on each side of scan i whose hits make up the place j is laid onto
@@ -49,6 +50,8 @@ REGISTRATION_REACH = 1.0
 FINEST_GATE = 2.5
 #: Gauss-Newton steps at each distance, at most
 REGISTRATION_ITERATIONS = 30
+#: a placement agrees with the scans' own pose within the loop evaluation's tolerance [m, degrees]
+AGREE = (Thresholds.ref_trans, Thresholds.ref_rot_deg)
 #: the two starts reach "the same" pose when they end this close [m, rad]
 SAME_POSE = (0.05, np.radians(0.25))
 
@@ -175,7 +178,7 @@ def verdict(share_constraint: float | None, share_ground_truth: float | None) ->
 
 
 def check_disagreements(constraints: list[dict], hits: dict[int, np.ndarray], run_poses: np.ndarray,
-                        gt_poses: np.ndarray, tolerance: float, agree: tuple[float, float] = (0.3, 2.0)) -> dict:
+                        gt_poses: np.ndarray, tolerance: float, agree: tuple[float, float] = AGREE) -> dict:
     """For every constraint of the final graph that the ground truth calls false (``true_gt`` is
     False, set by ``classify_ground_truth``): both shares and the verdict, stored in
     ``c["scan_check"]``; where the shares leave it undecided, the registration's verdict
@@ -227,7 +230,7 @@ def scans_to_read(constraints: list[dict], neighbours: int = NEIGHBOURS) -> set[
 
 
 def check_run(run_dir, constraints: list[dict], run_poses: np.ndarray, gt_poses: np.ndarray,
-              run_input: str | None = None, agree: tuple[float, float] = (0.3, 2.0)) -> dict | None:
+              run_input: str | None = None, agree: tuple[float, float] = AGREE) -> dict | None:
     """``check_disagreements`` for a run folder: its log (``run_input``, default summary.json's
     ``input``) read again with its ``config.yaml``'s range filter, at 2 cells of its grid. None when
     the log or the config cannot be found (the check is then left out)."""

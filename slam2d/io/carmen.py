@@ -364,10 +364,6 @@ class CarmenFacts:
         return got
 
     @property
-    def max_reading(self) -> float:
-        return max((las.survey.max_reading for las in self.lasers.values()), default=-math.inf)
-
-    @property
     def laser_kind(self) -> str:
         """The laser message read."""
         return next(iter(self.lasers))
@@ -587,7 +583,7 @@ class CarmenLog:
         no_return = facts.no_return_value
         kind = facts.laser_kind  # the one laser read (module docstring)
         period = self.scan_period
-        if period is not None and facts.odom is not None and len(facts.odom):
+        if period is not None and kind in _RAW_TYPES and len(facts.odom):
             raise InputError(self.path, "--scan-period cannot be used here: this log's scans have no pose of their own "
                              "(RAWLASER lines), and their odometry comes from the ODOM lines by timestamp")
         prev_t = None
