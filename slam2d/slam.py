@@ -290,6 +290,7 @@ class Slam:
             raise UsageError("finish called twice")
         if not self._times:
             raise InputError(self.source_name, "no scans")
+        self._check_input()
         self._finished = True
         cfg = self.config
         self._counts["nodes"] = len(self._node_spill)
@@ -334,6 +335,21 @@ class Slam:
         self.observer.on_finish(result)
         kernel_cache.remember(self._kernels_before)
         return result
+
+    def _check_input(self) -> None:
+        """What makes a run's output meaningless whatever SLAM does, found once every scan is in: no
+        reading of any scan is a return (every beam invalid or a no-return), or every scan carries the
+        same timestamp (a trajectory file would then give made-up times). Raised as an InputError, so
+        nothing is written that looks like a result."""
+        c = self._counts
+        if c["scans"] and c["readings"] == c["invalid_readings"]:
+            raise InputError(self.source_name, f"none of the {c['scans']} scans holds a usable reading (every beam is "
+                             f"invalid, out of range or a no-return: {c['no_return_readings']} no-returns of "
+                             f"{c['readings']} readings)")
+        t = self._times
+        if len(t) > 1 and min(t) == max(t):
+            raise InputError(self.source_name, f"every scan is stamped {self._stamps[0]}: the timestamps are unusable "
+                             "(a CARMEN log can be read with --scan-period S, its scans S seconds apart)")
 
     def _spilled_nodes(self) -> list[Node]:
         """The nodes so far, read back from ``_node_spill``."""

@@ -8,6 +8,8 @@ import sys
 
 import numpy as np
 
+from slam2d.errors import InputError
+
 
 def _version() -> str:
     from importlib.metadata import PackageNotFoundError, version
@@ -63,6 +65,8 @@ def describe(source, usable_range: float | None = None) -> dict:
             last_odom = s.odom_pose
         with_gt += s.ground_truth is not None
         offset = s.laser_offset
+    if n == 0:
+        raise InputError(getattr(source, "path", "input"), "no scans")
     return {
         "scans": n,
         "duration_s": round(t_max - t_min, 6),

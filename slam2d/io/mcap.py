@@ -13,7 +13,7 @@ import numpy as np
 
 from slam2d.errors import InputError
 from slam2d.io.ros2_msgs import msgdef, stamp_from_text
-from slam2d.io.ros_input import (GROUND_TRUTH_TOPIC, TF_TYPES, PoseTrack, ScanConverter, add_pose,
+from slam2d.io.ros_input import (GROUND_TRUTH_TOPIC, TF_TYPES, PoseTrack, ScanConverter, TopicCounter, add_pose,
                                  choose_topics, robot_tracks)
 from slam2d.io.tf_tree import LaserMount, TfTree
 from slam2d.types import Scan
@@ -34,6 +34,7 @@ class McapLog:
             raise InputError(self.path, "no such file")
         self.topics = self._topics()
         self.scan_topic, self.odom_topic, self.gt_topic = choose_topics(self.path, self.topics, scan_topic, odom_topic)
+        self._check_encodings()
         self._tracks_cache = None  # read once: a second pass (results.mcap) warns about the mount only once
         self.odometry_from: str | None = None  # known once a pass over the scans read the log (``robot_tracks``)
 
@@ -48,12 +49,23 @@ class McapLog:
 
         return make_reader(f, decoder_factories=[DecoderFactory()])
 
+    def _check_encodings(self) -> None:
+        """The topics read must be CDR (ROS 2) encoded: what the decoder reads. A ROS 1 bag re-saved as MCAP
+        keeps its messages in the ROS 1 encoding."""
+        read = {t for t in (self.scan_topic, self.odom_topic, self.gt_topic) if t} | {
+            t for t, n in self.topics.items() if n in TF_TYPES}
+        for ch in self._summary().channels.values():
+            if ch.topic in read and ch.message_encoding != "cdr":
+                hint = " (a ROS 1 bag saved as MCAP: give slam2d the .bag itself)" if ch.message_encoding == "ros1" else ""
+                raise InputError(self.path, f"{ch.topic} is {ch.message_encoding!r}-encoded; slam2d reads the ROS 2 "
+                                 f"(CDR) encoding of MCAP{hint}")
+
     def _summary(self):
         try:
             with open(self.path, "rb") as f:
                 summary = self._reader(f).get_summary()
         except _mcap_errors() as e:
-            raise InputError(self.path, f"not a readable MCAP file ({type(e).__name__}: {e})") from None
+            raise InputError(self.path, f"not a readable MCAP file, truncated or corrupt ({type(e).__name__}: {e})") from None
         if summary is None:
             raise InputError(self.path, "MCAP file has no summary section (unindexed or truncated); re-save it with `mcap recover`")
         return summary
@@ -84,8 +96,12 @@ class McapLog:
             for _sch, _ch, _msg, m in reader.iter_decoded_messages(topics=[self.scan_topic]):
                 scan_frame = m.header.frame_id or None
                 break
-            for k, (_sch, ch, _msg, m) in enumerate(reader.iter_decoded_messages(topics=wanted + tf_topics)
-                                                    if wanted + tf_topics else ()):
+            else:
+                raise InputError(self.path, f"no messages on {self.scan_topic}")
+            position = TopicCounter()
+            for _sch, ch, _msg, m in (reader.iter_decoded_messages(topics=wanted + tf_topics) if wanted + tf_topics
+                                      else ()):
+                k = position(ch.topic)
                 if ch.topic in tf_topics:
                     try:
                         tree.add_message(m, static=ch.topic.lstrip("/") == "tf_static")

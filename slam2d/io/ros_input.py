@@ -152,11 +152,30 @@ def robot_tracks(path, tree: TfTree, odom: PoseTrack, odom_topic: str | None, sc
 
 
 def add_pose(track: PoseTrack, path, record: int, topic: str, header, pose) -> None:
-    """A decoded pose message's (x, y, yaw) into ``track``; a non-finite pose is an error."""
+    """A decoded pose message's (x, y, yaw) into ``track``; a non-finite pose, or an orientation
+    quaternion that is no rotation (all zero), is an error naming the message: ``record``, its
+    position among ``topic``'s messages, and its stamp."""
+    t, text = stamp(header)
+    q = pose.orientation
+    if not all(math.isfinite(v) for v in (q.x, q.y, q.z, q.w)) or q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w < 1e-18:
+        raise InputError(path, f"orientation quaternion ({q.x}, {q.y}, {q.z}, {q.w}) on {topic} (stamp {text}) "
+                         "has no rotation", record=record)
     p = pose2d(pose)
     if not np.all(np.isfinite(p)):
-        raise InputError(path, f"non-finite pose on {topic}", record=record)
-    track.add(stamp(header)[0], p)
+        raise InputError(path, f"non-finite pose {tuple(float(v) for v in p)} on {topic} (stamp {text})", record=record)
+    track.add(t, p)
+
+
+class TopicCounter:
+    """Each message's position among its own topic's messages: what an error's ``record`` names."""
+
+    def __init__(self):
+        self._n: dict[str, int] = {}
+
+    def __call__(self, topic: str) -> int:
+        k = self._n.get(topic, 0)
+        self._n[topic] = k + 1
+        return k
 
 
 class ScanConverter:
@@ -167,6 +186,8 @@ class ScanConverter:
         self.latest: float | None = None
         self.seen: dict[float, int] = {}  # scans per stamp so far: several scans stamped alike pair
         # with the poses stamped alike in order (a log whose stamps repeat, converted to a bag)
+        self.length_warned = False
+        self.clock_warned = False
 
     def __call__(self, k: int, m) -> Scan:
         t, text = stamp(m.header)
@@ -178,12 +199,18 @@ class ScanConverter:
         if not (math.isfinite(m.angle_min) and math.isfinite(m.range_max) and m.range_max > 0):
             raise InputError(self.path, f"LaserScan angle_min {m.angle_min} / range_max {m.range_max} unusable",
                              record=k)
+        if not (math.isfinite(m.range_min) and 0 <= m.range_min < m.range_max):
+            raise InputError(self.path, f"LaserScan range_min {m.range_min} unusable with range_max {m.range_max} "
+                             "(it needs 0 <= range_min < range_max)", record=k)
         if self.latest is not None and t < self.latest - MAX_TIME_REVERSAL:
             raise InputError(self.path, f"scan stamp {text} goes back {self.latest - t:.3f} s", record=k)
         self.latest = t if self.latest is None else max(self.latest, t)
         with np.errstate(invalid="ignore"):
-            if np.any(r < 0):
-                raise InputError(self.path, "negative range reading", record=k)
+            negative = np.flatnonzero((r < 0) & np.isfinite(r))  # -inf is REP 117's "too close": no reading
+        if negative.size:
+            raise InputError(self.path, f"negative range reading {float(r[negative[0]]):g} at beam {negative[0]} "
+                             f"({negative.size} in this scan)", record=k)
+        self._check_length(k, m, r.size)
         inten = np.asarray(m.intensities, dtype=np.float32) if len(m.intensities) == r.size else None
         a0, da = laser_angle(float(m.angle_min), r.size), laser_angle(float(m.angle_increment), r.size)
         if self.mount.mirrored:  # upside down: the beam at a lies at -a (``tf_tree``); listed in the same angular order
@@ -192,7 +219,26 @@ class ScanConverter:
             inten = None if inten is None else np.ascontiguousarray(inten[::-1])
         nth = self.seen.get(t, 0)
         self.seen[t] = nth + 1
+        if self.odom and not self.clock_warned and not self.odom.t[0] - 1.0 <= t <= self.odom.t[-1] + 1.0:
+            self.clock_warned = True
+            log.warning("%s: record %d: the scan stamped %s lies outside the odometry's stamps (%s to %s); such a scan "
+                        "takes the odometry's first or last pose (are the scans and the odometry on one clock?)",
+                        self.path, k, text, f"{self.odom.t[0]:.3f}", f"{self.odom.t[-1]:.3f}")
         return Scan.from_ranges(t, r, a0, da, m.range_max,
                                 odom_pose=self.odom.at(t, nth) if self.odom else None, range_min=m.range_min,
                                 laser_offset=self.mount.pose, intensities=inten, timestamp_text=text, index=k,
                                 ground_truth=self.gt.at(t, nth) if self.gt else None)
+
+    def _check_length(self, k: int, m, n: int) -> None:
+        """Warn once when a scan's beam count disagrees with its angle_min, angle_max and
+        angle_increment by more than one beam (drivers differ on whether angle_max is the last beam's
+        angle): the beams are placed at angle_min + i · angle_increment, as Cartographer and
+        slam_toolbox place them, and angle_max is not used."""
+        if self.length_warned or not math.isfinite(m.angle_max):
+            return
+        expected = (m.angle_max - m.angle_min) / m.angle_increment + 1
+        if abs(expected - n) > 1.5:
+            self.length_warned = True
+            log.warning("%s: record %d: %d ranges, but angle_min %g to angle_max %g in steps of %g makes %.0f beams; "
+                        "the beams are placed from angle_min in steps of angle_increment (angle_max is not used)",
+                        self.path, k, n, m.angle_min, m.angle_max, m.angle_increment, expected)

@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from slam2d.errors import InputError, UsageError
-from slam2d.io.ros_input import TF_TYPES, PoseTrack, ScanConverter, add_pose, choose_topics, robot_tracks
+from slam2d.io.ros_input import (TF_TYPES, PoseTrack, ScanConverter, TopicCounter, add_pose, choose_topics,
+                                 robot_tracks)
 from slam2d.io.tf_tree import LaserMount, TfTree
 from slam2d.types import Scan
 
@@ -103,8 +104,12 @@ class RosbagLog:
         for _k, _topic, m in self._messages(reader, [self.scan_topic]):
             scan_frame = m.header.frame_id or None
             break
+        else:
+            raise InputError(self.path, f"no messages on {self.scan_topic}")
         tf_topics = [t for t, n in self.topics.items() if n in TF_TYPES]
-        for k, topic, m in self._messages(reader, [t for t in (self.odom_topic, self.gt_topic, *tf_topics) if t]):
+        position = TopicCounter()
+        for _k, topic, m in self._messages(reader, [t for t in (self.odom_topic, self.gt_topic, *tf_topics) if t]):
+            k = position(topic)
             if topic in tf_topics:
                 try:
                     tree.add_message(m, static=topic.lstrip("/") == "tf_static")

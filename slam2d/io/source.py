@@ -16,8 +16,35 @@ KNOWN = ("expected a CARMEN log (.clf, .log, optionally .gz/.bz2), an MCAP file 
          "or a ROS 2 bag (its folder with metadata.yaml, or its .db3/.mcap file)")
 
 
+#: what a file's first bytes say it is, whatever its name
+MAGIC = {b"\x89MCAP0\r\n": ("an MCAP file", ".mcap"), b"#ROSBAG V2.0": ("a ROS 1 bag", ".bag"),
+         b"SQLite format 3": ("an SQLite file (a ROS 2 bag's .db3)", ".db3")}
+
+
+def _content_kind(path: Path) -> tuple[str, str] | None:
+    try:
+        with open(path, "rb") as f:
+            head = f.read(16)
+    except OSError:
+        return None
+    return next((v for magic, v in MAGIC.items() if head.startswith(magic)), None)
+
+
 def source_kind(path: str | Path) -> str:
-    """``carmen``, ``mcap`` or ``rosbag``."""
+    """``carmen``, ``mcap`` or ``rosbag``; a file whose first bytes say it is another kind than its name
+    says is an error that names both."""
+    kind = _kind_by_name(path)
+    p = Path(path)
+    if p.is_file():
+        content = _content_kind(p)
+        named = p.name.lower()
+        if content is not None and not named.endswith(content[1]):
+            raise InputError(path, f"this file is {content[0]} (its first bytes say so), not what its name says: "
+                             f"name it *{content[1]}")
+    return kind
+
+
+def _kind_by_name(path: str | Path) -> str:
     p = Path(path)
     if p.is_dir():
         if (p / "metadata.yaml").exists():

@@ -63,6 +63,8 @@ def transform_matrix(translation, quaternion) -> np.ndarray:
     m = np.eye(4)
     m[:3, :3] = _rotation(*quaternion)
     m[:3, 3] = np.asarray(translation, dtype=float)
+    if not np.all(np.isfinite(m[:3, 3])):
+        raise ValueError(f"translation ({', '.join(str(v) for v in translation)}) is not finite")
     return m
 
 
