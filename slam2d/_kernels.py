@@ -203,32 +203,21 @@ def tangent_moments(points, neighbours, min_baseline, max_gap):
 
 
 @njit(cache=True, nogil=True)
-def survey_band(ranges, running_max, share):
-    """One scan of the no-return survey: (the running maximum raised to this scan's largest finite
-    reading, this scan's finite readings at or above ``share`` of that maximum). A scan with no
-    finite reading leaves the maximum as it is and gives none."""
-    top = -math.inf
-    for i in range(ranges.shape[0]):
-        r = ranges[i]
-        if r == r and r != math.inf and r != -math.inf and r > top:
-            top = r
-    if top == -math.inf:
-        return running_max, ranges[:0].copy()
-    new_max = max(running_max, float(top))
-    threshold = share * new_max
+def survey_band(ranges, threshold):
+    """One batch of the no-return survey: its finite readings at or above ``threshold``, in order."""
     n = 0
     for i in range(ranges.shape[0]):
         r = ranges[i]
-        if r >= threshold and r != math.inf:
+        if r >= threshold and r != math.inf and r != -math.inf:
             n += 1
     band = np.empty(n, dtype=ranges.dtype)
     n = 0
     for i in range(ranges.shape[0]):
         r = ranges[i]
-        if r >= threshold and r != math.inf:
+        if r >= threshold and r != math.inf and r != -math.inf:
             band[n] = r
             n += 1
-    return new_max, band
+    return band
 
 
 @njit(cache=True, nogil=True)

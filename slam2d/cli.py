@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -143,8 +144,8 @@ def cmd_run(args) -> int:
         cfg.real_time_matcher.use_odometry = False
     if args.max_scans is not None and args.max_scans <= 0:
         raise UsageError("--max-scans must be positive")
-    if args.rate is not None and not args.rate > 0:
-        raise UsageError("--rate must be positive")
+    if args.rate is not None and not 1e-3 <= args.rate <= 1e6:
+        raise UsageError(f"--rate must lie between 0.001 and 1e6 (times real time), not {args.rate}")
     src = _source(args)
     total = src.num_scans() if hasattr(src, "num_scans") else None
     if args.max_scans:
@@ -156,6 +157,8 @@ def cmd_run(args) -> int:
     if args.rerun or args.viewer:
         if args.rerun and not args.rerun.endswith(".rrd"):
             raise UsageError(f"{args.rerun}: a Rerun recording must end in .rrd")
+        if args.rerun:
+            writable_file(args.rerun, "Rerun recording")
         from slam2d.viz.rerun import RerunObserver
 
         rrd_tmp = f"{args.rerun}.partial" if args.rerun else None
@@ -183,8 +186,6 @@ def cmd_run(args) -> int:
         if viz is not None:
             viz.close()
             if rrd_tmp:
-                import os
-
                 os.replace(rrd_tmp, args.rerun)
     except BaseException:
         if rrd_tmp:
@@ -241,6 +242,25 @@ def cmd_info(args) -> int:
     return 0
 
 
+def writable_file(path, what: str) -> Path:
+    """``path`` as a file to be written: its folder made if missing and writable, the path itself not
+    a folder; checked before any work, so a run or a conversion does not fail at its end."""
+    p = Path(path)
+    try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise UsageError(f"{p}: cannot create the folder for the {what} ({e.strerror})") from None
+    if p.is_dir():
+        raise UsageError(f"{p}: is a folder; the {what} is a file")
+    probe = p.parent / f".{p.name}.{os.getpid()}.probe"  # write access alone says yes to root, even on /proc
+    try:
+        probe.open("wb").close()
+        probe.unlink()
+    except OSError as e:
+        raise UsageError(f"{p}: cannot write the {what} there ({e.strerror})") from None
+    return p
+
+
 def _bag_kind(outp: Path, storage: str | None) -> str:
     """What `slam2d convert` writes to ``outp``: ``mcap_file``, ``ros1``, or a ROS 2 bag folder with
     ``sqlite3`` or ``mcap`` storage."""
@@ -257,11 +277,11 @@ def _bag_kind(outp: Path, storage: str | None) -> str:
 
 
 def cmd_convert(args) -> int:
-    import os
     import shutil
 
     outp = Path(args.output)
     kind = _bag_kind(outp, args.storage)
+    writable_file(outp, "output")
     src = _source(args)
     total = src.num_scans() if hasattr(src, "num_scans") else None
     # written under a temporary name, renamed only when complete; a ROS 2 bag folder is built
@@ -310,13 +330,12 @@ def cmd_convert(args) -> int:
 
 
 def cmd_simulate(args) -> int:
-    import os
-
     from slam2d.io.simulator import SimConfig, write_simulation
 
     outp = Path(args.output)
     if outp.suffix.lower() != ".mcap":
         raise UsageError(f"{outp}: output must end in .mcap")
+    writable_file(outp, "output")
     tmp = Path(f"{outp}.partial")
     try:
         n = write_simulation(tmp, SimConfig(seed=args.seed))

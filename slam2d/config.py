@@ -19,6 +19,15 @@ from slam2d.errors import ConfigError
 class _Section(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_bool_for_a_number(cls, value, info):
+        """YAML's true/false is no number: pydantic would read ``max_range: true`` as 1.0."""
+        kind = cls.model_fields[info.field_name].annotation
+        if isinstance(value, bool) and kind in (int, float):
+            raise ValueError(f"needs a number, not {str(value).lower()}")
+        return value
+
 
 class RangeFilterConfig(_Section):
     """Which readings local SLAM uses (a processing choice, not a sensor fact)."""
@@ -32,7 +41,7 @@ class RangeFilterConfig(_Section):
 class GridConfig(_Section):
     """Log-odds probability grid (Cartographer's probability_grid_range_data_inserter)."""
 
-    resolution: float = Field(0.05, gt=0.0, le=1.0, description="Cell size of submaps [m].")
+    resolution: float = Field(0.05, ge=0.01, le=1.0, description="Cell size of submaps [m] (at least 1 cm: a laser's noise is about that, and finer cells multiply memory by the square).")
     hit_probability: float = Field(0.55, gt=0.5, lt=1.0, description="Probability that a cell holding a scan endpoint is occupied.")
     miss_probability: float = Field(0.49, gt=0.0, lt=0.5, description="Probability that a cell crossed by a ray is occupied.")
     min_probability: float = Field(0.12, gt=0.0, lt=0.5, description="Lower clamp of cell probabilities.")
@@ -166,7 +175,7 @@ class FinalRefinementConfig(_Section):
 class MapConfig(_Section):
     """The exported occupancy map (ROS map_server PGM + YAML, and PNG)."""
 
-    resolution: float = Field(0.05, gt=0.0, le=1.0, description="Cell size of the exported map [m].")
+    resolution: float = Field(0.05, ge=0.01, le=1.0, description="Cell size of the exported map [m] (at least 1 cm).")
     occupied_thresh: float = Field(0.65, gt=0.0, lt=1.0, description="map.yaml occupied_thresh (how map_server reads the image's pixels).")
     free_thresh: float = Field(0.196, gt=0.0, lt=1.0, description="map.yaml free_thresh.")
     cells: Literal["evidence", "thresholds"] = Field(
@@ -235,6 +244,8 @@ def load_config(path: str | Path | None) -> SlamConfig:
         raise ConfigError(f"{path}: no such config file") from None
     except OSError as e:
         raise ConfigError(f"{path}: cannot read: {e.strerror}") from None
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{path}: not a text file (byte {e.start} is not UTF-8)") from None
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as e:

@@ -42,6 +42,8 @@ MAX_VIOLATION = 0.1
 WARN_AGREEING, BROKEN_AGREEING = 0.95, 0.8
 #: shares of matched scans that were not trusted above which the map is flagged
 WARN_UNTRUSTED, BROKEN_UNTRUSTED = 0.01, 0.05
+#: shares of scans local SLAM never matched (too few points) above which the map is flagged
+WARN_UNMATCHED, BROKEN_UNMATCHED = 0.1, 0.5
 #: nodes whose sensors lie within this distance [m] are compared ...
 NEIGHBOUR_RADIUS = 8.0
 #: ... the nearest this many from the same pass (path distance < 2 × the radius) and as many from other passes
@@ -151,9 +153,10 @@ def disagreeing_stretches(nodes, poses, violation: np.ndarray, most: int = STRET
     return out
 
 
-def assess(cfg, nodes, poses, local: dict | None = None, loops: dict | None = None) -> dict:
+def assess(cfg, nodes, poses, local: dict | None = None, loops: dict | None = None, scans: int | None = None) -> dict:
     """The ``health`` section of summary.json. ``local``/``loops``: the ``local_slam`` and
-    ``loop_closure`` sections (absent for odometry-only runs or local SLAM alone)."""
+    ``loop_closure`` sections (absent for odometry-only runs or local SLAM alone); ``scans``: how
+    many scans the run took."""
     v, rv = free_space_checks(nodes, poses, cfg.grid.resolution)
     where = disagreeing_stretches(nodes, poses, rv)
     v, rv = v[~np.isnan(v)], rv[~np.isnan(rv)]
@@ -189,6 +192,15 @@ def assess(cfg, nodes, poses, local: dict | None = None, loops: dict | None = No
         elif untrusted > WARN_UNTRUSTED:
             level = max(level, 1)
             reasons.append(f"{100 * untrusted:.1f} % of scans could not be matched with confidence")
+        if scans:
+            # scans local SLAM never tried to match (too few points left after filtering, or no submap yet):
+            # their poses are the prediction's; standing still is not among them (``still``)
+            unmatched = 1.0 - (matched + local.get("still", 0)) / scans
+            out["unmatched_share"] = round(unmatched, 4)
+            if unmatched > WARN_UNMATCHED:
+                level = max(level, 2 if unmatched > BROKEN_UNMATCHED else 1)
+                reasons.append(f"{100 * unmatched:.0f} % of scans were never matched (too few points in them?): their "
+                               "poses are the odometry's or the prediction's")
     if loops:
         acc = loops.get("accepted", 0)
         out.update({"loop_constraints_in_final_graph": loops.get("in_final_graph", 0),

@@ -399,7 +399,7 @@ class Slam:
         if self.global_slam is not None:
             s.update(self.global_slam.summary())
         t_h = time.perf_counter()
-        s["health"] = assess(self.config, self.nodes, poses, s.get("local_slam"), s.get("loop_closure"))
+        s["health"] = assess(self.config, self.nodes, poses, s.get("local_slam"), s.get("loop_closure"), s.get("scans"))
         s["timings"]["health_s"] = round(time.perf_counter() - t_h, 3)
         wall = time.perf_counter() - self._t_start
         s["wall_time_s"] = round(wall, 3)

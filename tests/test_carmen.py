@@ -163,6 +163,36 @@ def test_robotlaser1_max_range_and_spike_together(tmp_path):
     assert s.valid.tolist() == [True, False, True, False, True]
 
 
+@pytest.mark.parametrize("strays", [1, 4])
+def test_stray_readings_above_the_maximum_leave_the_no_return_value(tmp_path, flaser_line, strays):
+    """A corrupt token far above every other reading (500 in a log whose returns end at 80 m) must not
+    become the maximum the no-return spike is looked for under: up to SATURATION_MIN_COUNT - 1 of them."""
+    rng = np.random.default_rng(5)
+    lines = []
+    for i in range(200):
+        readings = [1.0, "81.83", 2.0, *_far_readings(rng, 4)]
+        if i < strays:
+            readings[2] = 500.0 + i
+        lines.append(flaser_line(readings, ts=f"{100 + i}.0"))
+    log = CarmenLog(write(tmp_path, "".join(lines)))
+    assert log.facts().no_return_value == pytest.approx(81.83)
+    assert all(s.no_return[1] and not s.valid[1] for s in log)
+
+
+def test_one_line_with_another_max_range_does_not_set_the_threshold(tmp_path):
+    """ROBOTLASER1's max_range field: the value most lines state (one corrupt line said 0.01 m and made
+    every reading of the log a no-return)."""
+    lines = []
+    for i in range(50):
+        max_range = "0.01" if i == 7 else "30.0"
+        lines.append(f"ROBOTLASER1 0 -1.5708 3.1416 0.785398 {max_range} 0.01 0 5 1.0 2.0 3.0 4.0 30.0 0 "
+                     f"0.22 0 0 0 0 0 0 0 0 0 0 {200 + i}.0 host {i}.0\n")
+    log = CarmenLog(write(tmp_path, "".join(lines)))
+    assert log.facts().no_return_value == pytest.approx(30.0)
+    assert log.facts().no_return_evidence[-1]["why"] == "the max_range field of the ROBOTLASER1 lines (49 of 50 lines)"
+    assert all(s.valid.tolist() == [True] * 4 + [False] for s in log)
+
+
 def test_no_saturation_means_every_reading_is_a_hit(tmp_path, flaser_line):
     lines = [flaser_line([1.0 + i, 2.0, 3.0], ts=f"{100 + i}.0") for i in range(3)]
     assert all(s.valid.all() for s in CarmenLog(write(tmp_path, "".join(lines))))
@@ -200,6 +230,18 @@ BAD = {
     "inf pose": ("FLASER 1 1.0 inf 0 0 0 0 0 100.0 nohost 0.1\n", 1, "pose field is not finite"),
     "time backwards": ("FLASER 1 1.0 0 0 0 0 0 0 100.0 nohost 0.1\nFLASER 1 1.0 0 0 0 0 0 0 90.0 nohost 0.2\n", 2,
                        "goes back"),
+    # the message names the line whose stamp jumped ahead, not only the one that comes back
+    "time jumps ahead": ("FLASER 1 1.0 0 0 0 0 0 0 100.0 nohost 0.1\nFLASER 1 1.0 0 0 0 0 0 0 9e8 nohost 0.1\n"
+                         "FLASER 1 1.0 0 0 0 0 0 0 100.2 nohost 0.1\n", 3, "goes back 9e+08 s (more than 1.0 s) "
+                         "behind the scan of line 2"),
+    "huge pose": ("FLASER 1 1.0 1e300 0 0 0 0 0 100.0 nohost 0.1\n", 1, "pose field beyond 1e+09 m"),
+    "huge reading": ("FLASER 2 1.0 1e300 0 0 0 0 0 0 100.0 nohost 0.1\n", 1,
+                     "range reading 1e+300 (beam 1) beyond 100000 m: no laser measures that far"),
+    "nan start angle": ("ROBOTLASER1 0 nan 3.1416 0.785398 30.0 0.01 0 2 1 2 0 0 0 0 0 0 0 0 0 0 0 0 100.0 h 0\n", 1,
+                        "start angle must be a number, found nan"),
+    "resolution in degrees": ("ROBOTLASER1 0 -90 180 1 30.0 0.01 0 181 " + "1 " * 181 +
+                              "0 0 0 0 0 0 0 0 0 0 0 0 100.0 h 0\n", 1,
+                              "181 beams 1.0 rad apart span 10313°, more than a full turn"),
     "bad odom": ("ODOM 1 2\nFLASER 1 1.0 0 0 0 0 0 0 100.0 nohost 0.1\n", 1, "truncated ODOM"),
     "rawlaser count mismatch": ("RAWLASER1 0 -1.5 3.0 0.5 30.0 0.01 0 4 1 2 3 0 100.0 nohost 0.1\n", 1,
                                 "remission count must be an integer, found '100.0'"),

@@ -159,6 +159,57 @@ def test_missing_file_and_bad_config(tmp_path):
     assert r.returncode != 0 and "grid.hit_probability" in r.stderr and r.stderr.strip().count("\n") == 0
 
 
+def test_outputs_that_cannot_be_written_are_refused_before_any_work(tmp_path, flaser_line, capsys):
+    """A recording, a conversion or a simulation whose file cannot be made fails at once, in one line
+    (it was a traceback at the end of the work)."""
+    log = tmp_path / "a.clf"
+    log.write_text("".join(flaser_line([1.0, 2.0, 3.0], ts=f"{100 + i}.0") for i in range(5)))
+    blocker = tmp_path / "afile"
+    blocker.write_text("x")  # a file where a folder would have to be
+    (tmp_path / "d.mcap").mkdir()
+    cases = [(["convert", str(log), str(blocker / "x.mcap")], f"{blocker / 'x.mcap'}: cannot create the folder"),
+             (["convert", str(log), str(tmp_path / "d.mcap")], f"{tmp_path / 'd.mcap'}: is a folder; the output is a file"),
+             (["run", str(log), "--out", str(tmp_path / "o"), "--rerun", str(blocker / "r.rrd")],
+              f"{blocker / 'r.rrd'}: cannot create the folder for the Rerun recording"),
+             (["simulate", str(blocker / "s.mcap")], f"{blocker / 's.mcap'}: cannot create the folder"),
+             (["run", str(log), "--out", str(tmp_path / "o"), "--rate", "1e-300"], "--rate must lie between")]
+    for argv, needle in cases:
+        assert main(argv + ["--no-progress"] if argv[0] != "simulate" else argv) == 2, argv
+        err = capsys.readouterr().err
+        assert needle in err and err.count("\n") == 1, err
+    assert main(["convert", str(log), str(tmp_path / "new" / "x.mcap"), "--no-progress"]) == 0  # a missing folder is made
+
+
+def test_config_that_is_not_text_or_asks_for_cells_too_small(tmp_path, capsys):
+    bad = tmp_path / "c.yaml"
+    bad.write_bytes(b"\xff\xfe\x00")
+    tiny = tmp_path / "t.yaml"
+    tiny.write_text("grid: {resolution: 1.0e-9}\n")  # asked for 2.5 EiB of cells
+    for cfg, needle in ((bad, "not a text file (byte 0 is not UTF-8)"),
+                        (tiny, "grid.resolution': Input should be greater than or equal to 0.01")):
+        assert main(["run", str(BUNDLED), "--out", str(tmp_path / "o"), "--config", str(cfg)]) == 2
+        err = capsys.readouterr().err
+        assert needle in err and err.count("\n") == 1, err
+
+
+def test_eval_refuses_what_it_cannot_score(tmp_path, capsys):
+    traj = tmp_path / "t.txt"
+    traj.write_text("".join(f"{100 + i}.0 {0.1 * i} 0 0 0 0 0 1\n" for i in range(10)))
+    rel = tmp_path / "r.relations"
+    rel.write_text("500.0 501.0 0.1 0 0 0 0 0\n")  # another log's stamps
+    gz = tmp_path / "r.gz"
+    gz.write_bytes(b"\x1f\x8b\x08\x00\xff\xfe")
+    cases = [(["relations", str(traj), str(rel)], "none of its relations falls within the trajectory's stamps"),
+             (["relations", str(traj), str(tmp_path)], "is a folder, not a file of relations"),
+             (["relations", str(traj), str(gz)], "not a text file of relations"),
+             (["relations", str(traj), str(rel), "--tolerance", "-1"], "--tolerance must lie in [0, 1) s"),
+             (["ate", str(traj), str(traj), "--plot", str(tmp_path / "p.xyz")], "the picture must end in .png")]
+    for argv, needle in cases:
+        assert main(["eval"] + argv) == 2, argv
+        err = capsys.readouterr().err
+        assert needle in err and err.count("\n") == 1, err
+
+
 def test_failed_run_keeps_previous_outputs_whole(tmp_path, flaser_line):
     good = tmp_path / "good.clf"
     good.write_text("".join(flaser_line([1.0, 2.0, 3.0], ts=f"{100 + i}.0") for i in range(5)))

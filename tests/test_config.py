@@ -40,6 +40,10 @@ def test_every_option_has_a_description():
     ({"grid": {"resolutoin": 0.05}}, "unknown key 'grid.resolutoin'"),
     ({"real_time_matcher": {"linear_search_window": 0}}, "real_time_matcher.linear_search_window"),
     ({"map": {"free_thresh": 0.9}}, "free_thresh"),
+    # YAML's true is no number (pydantic read it as 1.0); cells under 1 cm asked for exabytes
+    ({"range_filter": {"max_range": True}}, "range_filter.max_range': Value error, needs a number, not true"),
+    ({"submaps": {"num_range_data": False}}, "submaps.num_range_data': Value error, needs a number, not false"),
+    ({"grid": {"resolution": 1e-9}}, "grid.resolution': Input should be greater than or equal to 0.01"),
 ])
 def test_bad_values_name_the_key(data, needle):
     with pytest.raises(ConfigError) as e:

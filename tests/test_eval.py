@@ -217,6 +217,40 @@ def test_loops_cli_with_ground_truth_reference(tmp_path):
     assert (tmp_path / "ate" / "a.png").exists() and (tmp_path / "ate" / "a_error.png").exists()
 
 
+def test_loops_refuses_a_constraint_to_a_scan_the_run_does_not_have(tmp_path):
+    """An unstamped record naming a scan past the trajectory's end was an IndexError; it is one line."""
+    _synthetic_run(tmp_path)
+    lines = (tmp_path / "constraints.jsonl").read_text().splitlines()
+    rec = json.loads(lines[0])
+    rec.pop("from_stamp", None), rec.pop("to_stamp", None)
+    rec["from_scan"] = 999999
+    (tmp_path / "constraints.jsonl").write_text("\n".join([json.dumps(rec)] + lines[1:]) + "\n")
+    r = slam2d("eval", "loops", tmp_path)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+    assert "constraints.jsonl:1: from_scan 999999 is not a scan of trajectory.txt" in r.stderr
+
+
+def test_ate_against_a_corrected_log_refuses_a_trajectory_out_of_scan_order(tmp_path, flaser_line):
+    """A corrected CARMEN reference is matched to the run input's scans by position: a trajectory
+    re-sorted or reversed (evo re-saves by stamp, without the '# scans' line) was scored against the
+    wrong poses, silently."""
+    log = tmp_path / "in.clf"
+    log.write_text("".join(flaser_line([1.0 + 0.1 * i, 2.0, 3.0], pose=(0.5 * i, 0, 0), odom=(0.5 * i, 0, 0),
+                                       ts=f"{100 + i}.0") for i in range(6)))
+    stamps = [f"{100 + i}.0" for i in range(6)]
+    poses = np.array([[0.5 * i, 0.0, 0.0] for i in range(6)])
+    write_tum(tmp_path / "ok.txt", stamps, poses)
+    r = subprocess.run([sys.executable, "-m", "slam2d.cli", "eval", "ate", str(tmp_path / "ok.txt"), str(log),
+                        "--run-input", str(log), "--json"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["ate"]["trans_m"]["rmse"] == pytest.approx(0.0, abs=1e-9)
+    write_tum(tmp_path / "rev.txt", stamps[::-1], poses[::-1])
+    r = subprocess.run([sys.executable, "-m", "slam2d.cli", "eval", "ate", str(tmp_path / "rev.txt"), str(log),
+                        "--run-input", str(log)], capture_output=True, text=True)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+    assert "scan 0 is stamped 100.000000 but the trajectory's pose 0 105.000000" in r.stderr
+
+
 def test_loops_reads_corrected_carmen_reference(tmp_path):
     src = dataset("intel")
     run = tmp_path / "run"

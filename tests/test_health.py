@@ -2,6 +2,7 @@
 import math
 
 import numpy as np
+import pytest
 
 from slam2d.config import config_from_dict
 from slam2d.geometry import compose, transform_points
@@ -109,6 +110,18 @@ def test_health_flags_untrusted_matches():
     local = {"matched_scans": 900, "untrusted": 100}
     h = assess(config_from_dict({}), [], np.zeros((0, 3)), local)
     assert h["status"] == "BROKEN" and "matched with confidence" in h["reasons"][0]
+
+
+@pytest.mark.parametrize("matched, still, status", [(1000, 0, "OK"), (850, 100, "OK"), (850, 0, "WARN"),
+                                                   (300, 100, "BROKEN"), (0, 0, "BROKEN")])
+def test_health_flags_scans_never_matched(matched, still, status):
+    """A log of 2-beam scans leaves local SLAM nothing to match: the trajectory is the odometry's, and
+    the report must not say OK. Scans skipped while the robot stood still are not unmatched."""
+    local = {"matched_scans": matched, "untrusted": 0, "still": still}
+    h = assess(config_from_dict({}), [], np.zeros((0, 3)), local, scans=1000)
+    assert h["status"] == status
+    assert h["unmatched_share"] == pytest.approx(1 - (matched + still) / 1000)
+    assert ("never matched" in " ".join(h["reasons"])) == (status != "OK")
 
 
 def _box_scan(pose, half=(5.0, 3.0), person=None, beams=360):

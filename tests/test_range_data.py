@@ -133,33 +133,27 @@ def test_classify_readings_matches_oracle(no_return):
     assert classify_readings(np.full(4, np.nan), 50.0, valid[:4], no_ret[:4]) == (-1, True)
 
 
-def survey_band_oracle(ranges, running_max, share):
-    """The no-return survey's step in plain numpy (the code the kernel replaced)."""
-    finite = ranges[np.isfinite(ranges)]
-    if finite.size == 0:
-        return running_max, ranges[:0]
-    new_max = max(running_max, float(finite.max()))
-    band = ranges[ranges >= share * new_max]
-    return new_max, band[np.isfinite(band)]
+def survey_band_oracle(ranges, threshold):
+    """The no-return survey's band in plain numpy: the finite readings at or above ``threshold``."""
+    band = ranges[ranges >= threshold]
+    return band[np.isfinite(band)]
 
 
 def test_survey_band_matches_oracle():
     from slam2d._kernels import survey_band
 
     cases = [(np.array([1.0, np.inf, 81.83, np.nan, 81.91, -np.inf, 3.0, 40.0]), -np.inf),
-             (np.array([1.0, 2.0, 3.0]), 50.0),         # below the running maximum: its band only
-             (np.array([np.nan, np.inf, -np.inf]), 12.0),  # nothing finite: nothing changes
+             (np.array([1.0, 2.0, 3.0]), 50.0),         # all below: nothing
+             (np.array([np.nan, np.inf, -np.inf]), 12.0),  # nothing finite: nothing
              (np.zeros(0), -np.inf)]
     rng = np.random.default_rng(0)
     cases += [(np.where(rng.random(300) < 0.1, np.inf, rng.uniform(0, 80, 300)).astype(dt), m)
               for dt in (np.float32, np.float64) for m in (-np.inf, 30.0, 95.0)]
-    for ranges, running in cases:
-        got_max, got_band = survey_band(ranges, running, 0.45)
-        want_max, want_band = survey_band_oracle(ranges, running, 0.45)
-        assert got_max == want_max
-        assert got_band.dtype == ranges.dtype
-        np.testing.assert_array_equal(got_band, want_band)
-    assert survey_band(cases[0][0], -np.inf, 0.45)[1].tolist() == [81.83, 81.91, 40.0]
+    for ranges, threshold in cases:
+        got = survey_band(ranges, threshold)
+        assert got.dtype == ranges.dtype
+        np.testing.assert_array_equal(got, survey_band_oracle(ranges, threshold))
+    assert survey_band(cases[0][0], 36.0).tolist() == [81.83, 81.91, 40.0]
 
 
 def test_adaptive_voxel_filter_keeps_about_the_minimum():

@@ -18,6 +18,10 @@ EXAMPLES = """examples:
 """
 
 
+#: what ``--plot`` writes (matplotlib's formats a viewer opens)
+PLOT_SUFFIXES = (".png", ".svg", ".pdf", ".jpg")
+
+
 def add_eval_parser(sub):
     p = sub.add_parser("eval", help="evaluate a trajectory (relations metric, ATE/RPE, loop closures, free-space consistency)",
                        epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -98,8 +102,15 @@ def _relations(args) -> int:
     from slam2d.eval.relations import read_relations, relations_metric
     from slam2d.io.trajectory import read_tum
 
+    from slam2d.errors import InputError, UsageError
+
+    if not 0 <= args.tolerance < 1.0:
+        raise UsageError(f"--tolerance must lie in [0, 1) s, not {args.tolerance}")
     t, poses, _ = read_tum(args.trajectory)
     m = relations_metric(t, poses, read_relations(args.relations), args.tolerance, args.exact)
+    if not m["counts"]["evaluated"]:
+        raise InputError(args.relations, f"none of its relations falls within the trajectory's stamps "
+                         f"({t.min():.3f} to {t.max():.3f} s): another log's relations?")
     m["trajectory"], m["relations_file"] = args.trajectory, args.relations
     _print(m, args.json)
     return 0
@@ -111,6 +122,12 @@ def _ate(args) -> int:
     from slam2d.eval.reference import load_reference, run_input_of
     from slam2d.io.trajectory import read_tum
 
+    if args.plot:
+        from slam2d.cli import writable_file
+
+        if Path(args.plot).suffix.lower() not in PLOT_SUFFIXES:
+            raise UsageError(f"--plot {args.plot}: the picture must end in {', '.join(PLOT_SUFFIXES)}")
+        writable_file(args.plot, "plot")
     t, poses, _ = read_tum(args.trajectory)
     ref = load_reference(args.reference, t, run_input_of(Path(args.trajectory), args.run_input))
     if ref.scan_indices.max() >= len(poses):

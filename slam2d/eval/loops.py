@@ -80,11 +80,11 @@ def check_stamps(constraints: list[dict], run_stamps: np.ndarray, path, toleranc
     for c in constraints:
         for end in ("from", "to"):
             stamp, i = c.get(f"{end}_stamp"), c[f"{end}_scan"]
-            if stamp is None:
-                continue
-            if not 0 <= i < len(run_stamps):
+            if not 0 <= i < len(run_stamps):  # stamped or not: every later step indexes the poses with it
                 raise InputError(path, f"{end}_scan {i} is not a scan of trajectory.txt ({len(run_stamps)} scans)",
                                  line=c["line"])
+            if stamp is None:
+                continue
             try:
                 d = run_stamps[i] - float(stamp)
             except (TypeError, ValueError):

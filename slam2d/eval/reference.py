@@ -21,6 +21,7 @@ from slam2d.geometry import between, compose
 from slam2d.io._text import iter_lines
 from slam2d.io.carmen import _parse_laser
 from slam2d.io.source import open_source, source_kind
+from slam2d.io.trajectory import NUDGE
 
 
 @dataclass
@@ -58,9 +59,10 @@ def run_input_of(traj_path: Path, given: str | None) -> str | None:
     summary = Path(traj_path).parent / "summary.json"
     if summary.exists():
         try:
-            return json.loads(summary.read_text()).get("input")
+            found = json.loads(summary.read_text()).get("input")
         except (json.JSONDecodeError, OSError):
             return None
+        return found
     return None
 
 
@@ -115,6 +117,20 @@ def load_reference(ref_path, run_stamps: np.ndarray, run_input: str | None, tole
     return Reference(ref.scan_indices[keep], ref.poses[keep], ref.kind, ref.total_reference_scans)
 
 
+def _check_scan_order(run_stamps: np.ndarray, input_stamps: np.ndarray, run_input, tolerance: float) -> None:
+    """The reference is matched to the input's scans by position, so the trajectory's poses must be
+    those scans in order: a trajectory re-sorted by stamp, or of another run, would be scored against
+    the wrong poses. trajectory.txt may move a repeated stamp later by 1 µs a line (`slam2d.io.trajectory`)."""
+    n = min(len(run_stamps), len(input_stamps))
+    d = run_stamps[:n] - input_stamps[:n]
+    bad = np.flatnonzero((d < -tolerance) | (d > tolerance + float(NUDGE) * n))
+    if bad.size:
+        i = int(bad[0])
+        raise InputError(run_input, f"scan {i} is stamped {input_stamps[i]:.6f} but the trajectory's pose {i} "
+                         f"{run_stamps[i]:.6f}: the trajectory does not list this log's scans in order (re-sorted, "
+                         "or another run's?)")
+
+
 def _load_reference(ref_path, run_stamps, run_input, tolerance) -> Reference:
     ref_path = Path(ref_path)
     if not ref_path.exists():
@@ -134,10 +150,21 @@ def _load_reference(ref_path, run_stamps, run_input, tolerance) -> Reference:
         if run_input is None:
             raise InputError(ref_path, "a corrected CARMEN reference is matched to the run's input scans: "
                              "give --run-input LOG (or keep summary.json beside the trajectory)")
+        if not Path(run_input).exists():
+            raise InputError(run_input, "no such file: the log the run read (the input in summary.json beside the "
+                             "trajectory, a path from where the run was made; or --run-input): give --run-input LOG")
         corrected = read_corrected_carmen(ref_path)
-        idx, poses, total = associate_by_ranges(open_source(run_input), corrected)
+        stamps = []
+
+        def recorded(scans):
+            for s in scans:
+                stamps.append(s.timestamp)
+                yield s
+
+        idx, poses, total = associate_by_ranges(recorded(open_source(run_input)), corrected)
         if len(idx) == 0:
             raise InputError(ref_path, f"none of its scans has the same range readings as a scan of {run_input}")
+        _check_scan_order(run_stamps, np.array(stamps), run_input, tolerance)
         return Reference(idx, poses, "corrected_carmen", total)
     from slam2d.io.trajectory import read_tum
 

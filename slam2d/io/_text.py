@@ -101,6 +101,15 @@ def read_numeric_table(path, fields: int, layout: str, what: str):
     path = Path(path)
     if not path.exists():
         raise InputError(path, "no such file")
+    if path.is_dir():
+        raise InputError(path, f"is a folder, not a file of {what}s")
+    try:
+        return _numeric_rows(path, fields, layout, what)
+    except UnicodeDecodeError:
+        raise InputError(path, f"not a text file of {what}s (it holds bytes that are not UTF-8; compressed?)") from None
+
+
+def _numeric_rows(path, fields, layout, what):
     rows, firsts = [], []
     with open(path) as f:
         for n, line in enumerate(f, start=1):

@@ -65,6 +65,9 @@ log = logging.getLogger(__name__)
 #: a scan stamped earlier than its predecessor by up to this much is tolerated and counted
 #: (the Intel log has such reorderings, up to 0.9 s); a larger jump back is an error
 MAX_TIME_REVERSAL = 1.0
+#: a finite reading beyond this [m], or a pose coordinate beyond MAX_COORDINATE, is corrupt data
+MAX_READING = 1e5
+MAX_COORDINATE = 1e9
 #: a repeated reading near the top is a no-return value when at least this share of beams has it
 SATURATION_MIN_SHARE = 1e-4
 SATURATION_MIN_COUNT = 5
@@ -222,14 +225,18 @@ class NoReturnSurvey:
 
     Exact values are counted only in the band above ``SPIKE_BAND / 2`` of the running maximum
     (values below it are pruned when the histogram is compacted), so memory stays small
-    whatever the log's length.
+    whatever the log's length. The maximum is the ``TOP``-th largest finite reading, not the
+    largest: a stray reading (a corrupt token such as 500 in a log whose returns end at 80 m) would
+    otherwise lift the band above the no-return value and hide it. ``TOP`` is the count a no-return
+    value needs at least (``SATURATION_MIN_COUNT``): a maximum fewer readings reach could not be one.
     """
 
     COMPACT_EVERY = 1 << 20  # readings buffered before the histogram is compacted
     BATCH = 1 << 16  # readings surveyed by one kernel call (per scan, the call would cost more than the work)
+    TOP = SATURATION_MIN_COUNT  # the maximum is the TOP-th largest reading (the largest in a log of fewer)
 
     def __init__(self):
-        self._max = -math.inf
+        self._top = np.empty(0)  # the TOP largest finite readings so far, ascending
         self.values = np.empty(0)
         self.counts = np.empty(0, dtype=np.int64)
         self._pending: list[np.ndarray] = []
@@ -239,9 +246,17 @@ class NoReturnSurvey:
 
     @property
     def max_reading(self) -> float:
-        """The largest finite reading surveyed so far."""
+        """The log's maximum for the spike search: the ``TOP``-th largest finite reading surveyed so
+        far (the largest, in a log of fewer; -inf before any)."""
         self._survey_batch()
-        return self._max
+        if self._top.size == self.TOP:
+            return float(self._top[0])
+        return float(self._top[-1]) if self._top.size else -math.inf
+
+    def _floor_max(self) -> float:
+        """What the band is cut against while readings come: the ``TOP``-th largest so far, which only
+        rises toward the final one, and -inf (everything kept) until there are ``TOP`` readings."""
+        return float(self._top[0]) if self._top.size == self.TOP else -math.inf
 
     def add(self, ranges: np.ndarray):
         self._batch.append(ranges)
@@ -250,15 +265,19 @@ class NoReturnSurvey:
             self._survey_batch()
 
     def _survey_batch(self):
-        """Survey the buffered scans at once. Against the running maximum of the batch rather than of
-        each scan, the band keeps fewer of the values that the next compaction prunes anyway (the band
-        only ever drops values below ``SPIKE_BAND / 2`` of a maximum no larger than the final one), so
-        the histogram ends the same."""
+        """Survey the buffered scans at once. The band is cut at ``SPIKE_BAND / 2`` of ``_floor_max``,
+        which is never above its final value, and the final compaction prunes against that: so a
+        batch keeps at least what the histogram ends with, and the histogram ends the same however
+        the readings were batched."""
         if not self._batch:
             return
         ranges = self._batch[0] if len(self._batch) == 1 else np.concatenate(self._batch)
         self._batch, self._batch_n = [], 0
-        self._max, band = survey_band(ranges, self._max, 0.5 * SPIKE_BAND)
+        finite = ranges[np.isfinite(ranges)].astype(np.float64)
+        if finite.size > self.TOP:
+            finite = np.partition(finite, finite.size - self.TOP)[-self.TOP:]
+        self._top = np.sort(np.concatenate([self._top, finite]))[-self.TOP:]
+        band = survey_band(ranges, 0.5 * SPIKE_BAND * self._floor_max())
         if band.size:
             self._pending.append(band)
             self._pending_n += band.size
@@ -274,7 +293,7 @@ class NoReturnSurvey:
         self._pending, self._pending_n = [], 0
         uniq, inv = np.unique(vals, return_inverse=True)
         cnt = np.bincount(inv, weights=weights).astype(np.int64)
-        keep = uniq >= 0.5 * SPIKE_BAND * self.max_reading
+        keep = uniq >= 0.5 * SPIKE_BAND * self._floor_max()
         self.values, self.counts = uniq[keep], cnt[keep]
 
     def spikes(self, num_readings: int) -> list[dict]:
@@ -320,16 +339,28 @@ class LaserFacts:
     kind: str
     num_scans: int = 0
     num_readings: int = 0
-    line_max_range: float | None = None
+    #: how many lines state each max_range (ROBOTLASER1, RAWLASERn; a value of 0 or less states none)
+    line_max_ranges: dict = field(default_factory=dict)
     survey: NoReturnSurvey = field(default_factory=NoReturnSurvey)
+
+    @property
+    def line_max_range(self) -> float | None:
+        """The max_range most lines state (the smallest of equally common ones): one corrupt line's
+        field does not become the threshold of the whole log."""
+        if not self.line_max_ranges:
+            return None
+        return min(self.line_max_ranges, key=lambda v: (-self.line_max_ranges[v], v))
 
     @property
     def no_return_evidence(self) -> list[dict]:
         """Why each of this laser's no-return values was chosen."""
         out = [dict(s, why="a repeated reading near the laser's maximum (a spike over the readings around it)")
                for s in self.survey.spikes(self.num_readings)]
-        if self.line_max_range is not None:
-            out.append({"value": self.line_max_range, "why": f"the max_range field of the {self.kind} lines"})
+        value = self.line_max_range
+        if value is not None:
+            n, total = self.line_max_ranges[value], sum(self.line_max_ranges.values())
+            why = f"the max_range field of the {self.kind} lines" + ("" if n == total else f" ({n} of {total} lines)")
+            out.append({"value": value, "why": why})
         return out
 
     @property
@@ -463,6 +494,11 @@ def _parse_laser(path, lineno, parts) -> _Parsed:
     tail = _floats(path, lineno, parts[base:base + fields], "pose/timestamp field")
     if not (res > 0 and math.isfinite(res)):
         raise InputError(path, f"angular resolution must be positive, found {res}", line=lineno)
+    if not math.isfinite(start):
+        raise InputError(path, f"start angle must be a number, found {start}", line=lineno)
+    if (n - 1) * res > 2 * math.pi + 1e-6:
+        raise InputError(path, f"{n} beams {res} rad apart span {math.degrees((n - 1) * res):.0f}°, more than a full "
+                         "turn (is the angular resolution in degrees?)", line=lineno)
     if kind in _RAW_TYPES:  # the robot pose comes from the ODOM lines (``CarmenLog._to_scan``)
         return _Parsed(kind, tail[0], parts[base], ranges, start, res, np.full(3, np.nan), np.full(3, np.nan),
                        max_range if max_range > 0 else None, rem)
@@ -523,7 +559,7 @@ class CarmenLog:
             las.num_scans += 1
             las.num_readings += p.ranges.size
             if p.max_range is not None:
-                las.line_max_range = p.max_range if las.line_max_range is None else min(las.line_max_range, p.max_range)
+                las.line_max_ranges[p.max_range] = las.line_max_ranges.get(p.max_range, 0) + 1
             las.survey.add(p.ranges)
         if not f.lasers:
             spool.close()
@@ -586,26 +622,31 @@ class CarmenLog:
         if period is not None and kind in _RAW_TYPES and len(facts.odom):
             raise InputError(self.path, "--scan-period cannot be used here: this log's scans have no pose of their own "
                              "(RAWLASER lines), and their odometry comes from the ODOM lines by timestamp")
-        prev_t = None
+        prev = None  # (the latest timestamp so far, its line)
         for index, (lineno, p) in enumerate((lineno, p) for lineno, p in self._laser_records() if p.kind == kind):
             if p.kind in _RAW_TYPES:  # no pose in the line: the robot's from the ODOM lines, the laser at its origin
                 p.robot_pose = p.laser_pose = odom_at(facts.odom, p.timestamp)
             if period is not None:  # the log's stamps are unusable: file order, ``period`` apart
                 p.timestamp = index * period
                 p.timestamp_text = f"{p.timestamp:.6f}"
-            yield self._to_scan(p, lineno, index, no_return, prev_t)
-            prev_t = p.timestamp if prev_t is None else max(prev_t, p.timestamp)
+            yield self._to_scan(p, lineno, index, no_return, prev)
+            if prev is None or p.timestamp > prev[0]:
+                prev = (p.timestamp, lineno)
 
-    def _to_scan(self, p: _Parsed, lineno: int, index: int, no_return, prev_t) -> Scan:
+    def _to_scan(self, p: _Parsed, lineno: int, index: int, no_return, prev) -> Scan:
+        """``prev``: (the latest timestamp of the scans before, its line), None for the first."""
         path = self.path
         if not math.isfinite(p.timestamp):
             raise InputError(path, f"timestamp {p.timestamp_text!r} is not finite", line=lineno)
-        if prev_t is not None and p.timestamp < prev_t - MAX_TIME_REVERSAL:
-            raise InputError(path, f"timestamp {p.timestamp_text} goes back {prev_t - p.timestamp:.3f} s "
-                             f"(more than {MAX_TIME_REVERSAL} s) behind an earlier scan; if the log's timestamps are "
-                             f"unusable, --scan-period S stamps the scans S seconds apart in file order", line=lineno)
+        if prev is not None and p.timestamp < prev[0] - MAX_TIME_REVERSAL:
+            raise InputError(path, f"timestamp {p.timestamp_text} goes back {prev[0] - p.timestamp:.6g} s "
+                             f"(more than {MAX_TIME_REVERSAL} s) behind the scan of line {prev[1]}; if the log's "
+                             f"timestamps are unusable, --scan-period S stamps the scans S seconds apart in file order",
+                             line=lineno)
         if p.robot_pose is not None and not (np.all(np.isfinite(p.laser_pose)) and np.all(np.isfinite(p.robot_pose))):
             raise InputError(path, "pose field is not finite", line=lineno)
+        if p.robot_pose is not None and max(np.abs(p.laser_pose).max(), np.abs(p.robot_pose).max()) > MAX_COORDINATE:
+            raise InputError(path, f"pose field beyond {MAX_COORDINATE:g} m", line=lineno)
         r = p.ranges
         valid = np.empty(r.shape, dtype=np.bool_)
         no_ret = np.empty(r.shape, dtype=np.bool_)
@@ -614,6 +655,11 @@ class CarmenLog:
             raise InputError(path, f"negative range reading {r[negative]} (beam {negative})", line=lineno)
         if all_nan:
             raise InputError(path, "every range reading is NaN", line=lineno)
+        with np.errstate(invalid="ignore"):
+            far = np.flatnonzero(np.isfinite(r) & (r > MAX_READING) & ~no_ret)  # a huge no-return value is one
+        if far.size:
+            raise InputError(path, f"range reading {r[far[0]]:g} (beam {far[0]}) beyond {MAX_READING:g} m: no laser "
+                             "measures that far", line=lineno)
         range_max = float(no_return) if no_return is not None else float(np.nanmax(np.where(np.isinf(r), np.nan, r))) if np.any(np.isfinite(r)) else 0.0
         return Scan(
             timestamp=p.timestamp,
