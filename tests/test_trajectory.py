@@ -67,3 +67,15 @@ def test_a_broken_scans_comment_is_an_error(tmp_path):
     p.write_text(p.read_text().replace("# scans 1 0", "# scans 1 1"))
     with pytest.raises(InputError, match="does not list each of the 2 lines once"):
         read_tum(p)
+
+
+def test_an_eight_column_file_that_is_no_trajectory_is_refused(tmp_path):
+    """A .relations file (t1 t2 x y z roll pitch yaw) has a TUM file's eight numbers a line; read as one, it
+    gave an ATE of 677 m. Its 'quaternions' are not of unit length."""
+    p = tmp_path / "intel.relations"
+    p.write_text("976052857.3 976052858.1 0.1 0.0 0.0 0.0 0.0 -1.68221\n")
+    with pytest.raises(InputError, match=r"not a TUM trajectory: the quaternion of pose 0 \(0, 0, 0, -1.68221\) is not of "
+                                         r"unit length"):
+        read_tum(p)
+    write_tum(tmp_path / "ok.txt", ["1.0", "2.0"], np.array([[0.0, 0.0, 0.3], [1.0, 0.0, -2.0]]))
+    assert read_tum(tmp_path / "ok.txt")[1][:, 2] == pytest.approx([0.3, -2.0])

@@ -101,6 +101,11 @@ def read_tum(path) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """(timestamps (N,), poses (N, 3), timestamp strings), in scan order: file order unless a
     ``# scans`` comment gives each line's scan (then row i is scan i)."""
     rows, texts = read_numeric_table(path, 8, "timestamp x y z qx qy qz qw", "TUM line")
+    q = np.array([v[4:8] for v in rows], dtype=float).reshape(-1, 4)
+    off = np.flatnonzero(np.abs(np.linalg.norm(q, axis=1) - 1.0) > 0.01)
+    if off.size:  # an 8-column file that is no trajectory (a .relations file: t1 t2 x y z roll pitch yaw)
+        raise InputError(path, f"not a TUM trajectory: the quaternion of pose {off[0]} ({', '.join(f'{v:g}' for v in q[off[0]])}) "
+                         "is not of unit length")
     ts = np.array([v[0] for v in rows])
     poses = np.array([(v[1], v[2], float(quaternion_to_yaw(v[4], v[5], v[6], v[7]))) for v in rows],
                      dtype=float).reshape(-1, 3)
