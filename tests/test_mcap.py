@@ -80,3 +80,52 @@ def test_corrupt_and_truncated_mcap(tmp_path):
     p.write_text("not an mcap")
     with pytest.raises(InputError):
         McapLog(p)
+
+
+def _rewrite(src, dst, **kw):
+    """``src``'s messages written again by the mcap writer with ``kw`` (as another recorder would)."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    with open(src, "rb") as f:
+        msgs = list(make_reader(f).iter_messages())
+    with open(dst, "wb") as f:
+        w = Writer(f, **kw)
+        w.start("ros2", "test")
+        sids, cids = {}, {}
+        for sch, ch, m in msgs:
+            if sch.id not in sids:
+                sids[sch.id] = w.register_schema(sch.name, sch.encoding, sch.data)
+            if ch.id not in cids:
+                cids[ch.id] = w.register_channel(ch.topic, ch.message_encoding, sids[sch.id], ch.metadata)
+            w.add_message(cids[ch.id], m.log_time, m.data, m.publish_time, m.sequence)
+        w.finish()
+
+
+def test_an_mcap_without_summary_or_cut_off_is_read_up_to_its_break(tmp_path, caplog):
+    """A recorder that never closed its file leaves no summary section; one cut off (power lost) leaves
+    half a record at the end. Both are read in file order, the second up to the break, with a warning."""
+    import logging
+
+    from mcap.writer import IndexType
+
+    scans = [s for _, s in zip(range(40), simulate(SimConfig(seed=2)))]
+    full = tmp_path / "full.mcap"
+    write_scans(full, scans)
+    want = list(McapLog(full))
+    live = tmp_path / "live.mcap"
+    _rewrite(full, live, index_types=IndexType.NONE, use_chunking=False, use_statistics=False,
+             use_summary_offsets=False, repeat_channels=False, repeat_schemas=False)
+    got = list(McapLog(live))
+    assert [s.timestamp_text for s in got] == [s.timestamp_text for s in want]
+    for a, b in zip(want, got):
+        np.testing.assert_array_equal(a.ranges, b.ranges)
+        np.testing.assert_array_equal(a.odom_pose, b.odom_pose)
+    cut = tmp_path / "cut.mcap"
+    data = live.read_bytes()
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    with caplog.at_level(logging.WARNING, logger="slam2d.io"):
+        part = list(McapLog(cut))
+    assert 10 < len(part) < 40
+    assert [s.timestamp_text for s in part] == [s.timestamp_text for s in want[: len(part)]]
+    assert any("a broken record after" in r.getMessage() and "cut off" in r.getMessage() for r in caplog.records)

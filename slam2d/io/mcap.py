@@ -2,10 +2,13 @@
 ``nav_msgs/msg/Odometry`` for wheel odometry, ``geometry_msgs/msg/PoseStamped`` for ground
 truth, ``tf2_msgs/msg/TFMessage`` on ``/tf_static`` and ``/tf`` for the laser mount (the TF
 chain from the odometry's child frame to the scan's ``header.frame_id``, `slam2d.io.tf_tree`).
-CDR encoding via ``mcap_ros2``; Foxglove and ROS 2 tools open what this writes.
+CDR encoding via ``mcap_ros2``; Foxglove and ROS 2 tools open what this writes. A file without a
+summary section (a recorder that never closed it, or was cut off) is read in file order, up to
+its first broken record.
 """
 from __future__ import annotations
 
+import logging
 import math
 from pathlib import Path
 
@@ -17,6 +20,8 @@ from slam2d.io.ros_input import (GROUND_TRUTH_TOPIC, TF_TYPES, PoseTrack, ScanCo
                                  choose_topics, robot_tracks)
 from slam2d.io.tf_tree import LaserMount, TfTree
 from slam2d.types import Scan
+
+log = logging.getLogger("slam2d.io")
 
 
 def _mcap_errors():
@@ -32,6 +37,9 @@ class McapLog:
         self.path = Path(path)
         if not self.path.exists():
             raise InputError(self.path, "no such file")
+        self._summary_cache = None
+        self._indexed = True  # False: no usable summary section; read in file order (``_read_summary``)
+        self._broken_after: int | None = None  # messages before the broken record that ends a cut-off file
         self.topics = self._topics()
         self.scan_topic, self.odom_topic, self.gt_topic = choose_topics(self.path, self.topics, scan_topic, odom_topic)
         self._check_encodings()
@@ -61,14 +69,68 @@ class McapLog:
                                  f"(CDR) encoding of MCAP{hint}")
 
     def _summary(self):
+        if self._summary_cache is None:
+            self._summary_cache = self._read_summary()
+        return self._summary_cache
+
+    def _read_summary(self):
+        """The summary section; a file without one (written live and never closed, or cut off when
+        the recorder stopped) is read record by record instead, up to the first broken record, with a
+        warning saying how far it got."""
         try:
             with open(self.path, "rb") as f:
                 summary = self._reader(f).get_summary()
-        except _mcap_errors() as e:
-            raise InputError(self.path, f"not a readable MCAP file, truncated or corrupt ({type(e).__name__}: {e})") from None
-        if summary is None:
-            raise InputError(self.path, "MCAP file has no summary section (unindexed or truncated); re-save it with `mcap recover`")
-        return summary
+        except _mcap_errors():
+            summary = None
+        if summary is not None:
+            return summary
+        from types import SimpleNamespace
+
+        from mcap.reader import NonSeekingReader
+
+        self._indexed = False
+        channels, schemas, n = {}, {}, 0
+        with open(self.path, "rb") as f:
+            try:
+                for sch, ch, _msg in NonSeekingReader(f).iter_messages(log_time_order=False):
+                    channels[ch.id] = ch
+                    if sch is not None:
+                        schemas[sch.id] = sch
+                    n += 1
+            except _mcap_errors() as e:
+                if n == 0:
+                    raise InputError(self.path, f"not a readable MCAP file, truncated or corrupt ({type(e).__name__}: "
+                                     f"{e})") from None
+                self._broken_after = n
+                log.warning("%s: no summary section, and a broken record after %d messages (a recording cut off?): "
+                            "reading the messages before it", self.path, n)
+        if self._broken_after is None:
+            log.info("%s: no summary section (written live?): read in file order", self.path)
+        return SimpleNamespace(channels=channels, schemas=schemas, statistics=None)
+
+    def _messages(self, topics: list[str]):
+        """(channel, decoded message) of ``topics``: in log-time order by the index, or in file order
+        (up to the broken record of a cut-off file) without one."""
+        with open(self.path, "rb") as f:
+            if self._indexed:
+                for _sch, ch, _msg, m in self._reader(f).iter_decoded_messages(topics=topics):
+                    yield ch, m
+                return
+            from mcap.reader import NonSeekingReader
+            from mcap_ros2.decoder import DecoderFactory
+
+            it = NonSeekingReader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages(
+                topics=topics, log_time_order=False)
+            while True:
+                try:
+                    _sch, ch, _msg, m = next(it)
+                except StopIteration:
+                    return
+                except _mcap_errors():
+                    if self._broken_after is None:
+                        raise
+                    return  # the broken tail ``_read_summary`` warned about
+                yield ch, m
 
     def _topics(self) -> dict[str, str]:
         summary = self._summary()
@@ -91,27 +153,24 @@ class McapLog:
         base = scan_frame = None
         wanted = [t for t in (self.odom_topic, self.gt_topic) if t]
         tf_topics = [t for t, n in self.topics.items() if n in TF_TYPES]
-        with open(self.path, "rb") as f:
-            reader = self._reader(f)
-            for _sch, _ch, _msg, m in reader.iter_decoded_messages(topics=[self.scan_topic]):
-                scan_frame = m.header.frame_id or None
-                break
+        for _ch, m in self._messages([self.scan_topic]):
+            scan_frame = m.header.frame_id or None
+            break
+        else:
+            raise InputError(self.path, f"no messages on {self.scan_topic}")
+        position = TopicCounter()
+        for ch, m in (self._messages(wanted + tf_topics) if wanted + tf_topics else ()):
+            k = position(ch.topic)
+            if ch.topic in tf_topics:
+                try:
+                    tree.add_message(m, static=ch.topic.lstrip("/") == "tf_static")
+                except ValueError as e:
+                    raise InputError(self.path, f"bad transform on {ch.topic}: {e}", record=k) from None
+            elif ch.topic == self.odom_topic:
+                base = base or m.child_frame_id or None
+                add_pose(odom, self.path, k, ch.topic, m.header, m.pose.pose)
             else:
-                raise InputError(self.path, f"no messages on {self.scan_topic}")
-            position = TopicCounter()
-            for _sch, ch, _msg, m in (reader.iter_decoded_messages(topics=wanted + tf_topics) if wanted + tf_topics
-                                      else ()):
-                k = position(ch.topic)
-                if ch.topic in tf_topics:
-                    try:
-                        tree.add_message(m, static=ch.topic.lstrip("/") == "tf_static")
-                    except ValueError as e:
-                        raise InputError(self.path, f"bad transform on {ch.topic}: {e}", record=k) from None
-                elif ch.topic == self.odom_topic:
-                    base = base or m.child_frame_id or None
-                    add_pose(odom, self.path, k, ch.topic, m.header, m.pose.pose)
-                else:
-                    add_pose(gt, self.path, k, ch.topic, m.header, m.pose)
+                add_pose(gt, self.path, k, ch.topic, m.header, m.pose)
         odom, mount, self.odometry_from = robot_tracks(self.path, tree, odom, self.odom_topic, scan_frame, base)
         return odom, gt, mount
 
@@ -128,9 +187,8 @@ class McapLog:
             self._tracks_cache = self._tracks()
         odom, gt, mount = self._tracks_cache
         convert = ScanConverter(self.path, mount, odom, gt)
-        with open(self.path, "rb") as f:
-            for k, (_sch, _ch, _msg, m) in enumerate(self._reader(f).iter_decoded_messages(topics=[self.scan_topic])):
-                yield convert(k, m)
+        for k, (_ch, m) in enumerate(self._messages([self.scan_topic])):
+            yield convert(k, m)
 
 
 # ------------------------------------------------------------------ writing
