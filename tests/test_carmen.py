@@ -543,3 +543,24 @@ def test_a_log_with_a_front_and_a_rear_laser_is_read_from_one(tmp_path):
     facts = CarmenLog(log).facts()
     assert facts.laser_messages == "RLASER" and facts.skipped_lasers == {"FLASER": 100}
     assert facts.no_return_value == 81.9 and len(list(CarmenLog(log))) == 300
+
+
+def test_a_stamp_far_ahead_is_warned_about_once(tmp_path, flaser_line, caplog):
+    import logging
+
+    text = "".join(flaser_line([1.0, 2.0], ts=ts) for ts in ("100.0", "100.2", "2000000000.0", "2000000000.2"))
+    with caplog.at_level(logging.WARNING):
+        scans = list(CarmenLog(write(tmp_path, text)))
+    assert len(scans) == 4
+    msgs = [r.getMessage() for r in caplog.records if "jumps" in r.getMessage()]
+    assert len(msgs) == 1 and ":3: timestamp 2000000000.0 jumps 2e+09 s ahead of the scan of line 2" in msgs[0], msgs
+
+
+def test_a_no_return_value_beyond_float32_reads_as_inf_without_a_warning(tmp_path, flaser_line):
+    import warnings
+
+    text = "".join(flaser_line([1.0, "1e300", 2.0, "1e300"], ts=f"{100 + i}.0") for i in range(20))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scans = list(CarmenLog(write(tmp_path, text)))
+    assert all(s.no_return[[1, 3]].all() and s.valid[[0, 2]].all() for s in scans)

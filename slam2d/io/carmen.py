@@ -65,6 +65,8 @@ log = logging.getLogger(__name__)
 #: a scan stamped earlier than its predecessor by up to this much is tolerated and counted
 #: (the Intel log has such reorderings, up to 0.9 s); a larger jump back is an error
 MAX_TIME_REVERSAL = 1.0
+#: a scan stamped this much [s] after the one before is warned about (once): a broken stamp, or two logs in one
+MAX_TIME_GAP = 3600.0
 #: a finite reading beyond this [m], or a pose coordinate beyond MAX_COORDINATE, is corrupt data
 MAX_READING = 1e5
 MAX_COORDINATE = 1e9
@@ -623,6 +625,7 @@ class CarmenLog:
             raise InputError(self.path, "--scan-period cannot be used here: this log's scans have no pose of their own "
                              "(RAWLASER lines), and their odometry comes from the ODOM lines by timestamp")
         prev = None  # (the latest timestamp so far, its line)
+        gap_warned = False
         for index, (lineno, p) in enumerate((lineno, p) for lineno, p in self._laser_records() if p.kind == kind):
             if p.kind in _RAW_TYPES:  # no pose in the line: the robot's from the ODOM lines, the laser at its origin
                 p.robot_pose = p.laser_pose = odom_at(facts.odom, p.timestamp)
@@ -630,6 +633,10 @@ class CarmenLog:
                 p.timestamp = index * period
                 p.timestamp_text = f"{p.timestamp:.6f}"
             yield self._to_scan(p, lineno, index, no_return, prev)
+            if prev is not None and p.timestamp > prev[0] + MAX_TIME_GAP and not gap_warned:
+                gap_warned = True
+                log.warning("%s:%d: timestamp %s jumps %.6g s ahead of the scan of line %d (a broken stamp?)", self.path,
+                            lineno, p.timestamp_text, p.timestamp - prev[0], prev[1])
             if prev is None or p.timestamp > prev[0]:
                 prev = (p.timestamp, lineno)
 
@@ -661,10 +668,12 @@ class CarmenLog:
             raise InputError(path, f"range reading {r[far[0]]:g} (beam {far[0]}) beyond {MAX_READING:g} m: no laser "
                              "measures that far", line=lineno)
         range_max = float(no_return) if no_return is not None else float(np.nanmax(np.where(np.isinf(r), np.nan, r))) if np.any(np.isfinite(r)) else 0.0
+        with np.errstate(over="ignore"):  # a no-return value beyond float32 (1e300) reads as inf, a no-return too
+            r32 = r.astype(np.float32)
         return Scan(
             timestamp=p.timestamp,
             timestamp_text=p.timestamp_text,
-            ranges=r.astype(np.float32),
+            ranges=r32,
             angle_min=p.angle_min,
             angle_increment=p.angle_increment,
             range_min=0.0,
