@@ -18,6 +18,9 @@ from slam2d.grid.map_export import write_map
 from slam2d.io.trajectory import write_tum
 
 PARTIAL = ".partial"
+#: every file a run may write into its folder (``SlamResult.save``)
+OUTPUT_FILES = ("trajectory.txt", "map.pgm", "map.yaml", "map.png", "config.yaml", "constraints.jsonl",
+                "results.mcap", "summary.json")
 
 
 class OutputDir:
@@ -52,8 +55,18 @@ class OutputDir:
         write_tum(self.staged(name), stamps, poses)
 
     def commit(self):
+        """Rename every file into place, after checking that none of the names is taken by a folder, and
+        remove the outputs of an earlier run into this folder that this one does not write (a local run
+        saved over a global one left the global run's constraints.jsonl beside its own summary)."""
+        taken = [p for p in self.pending if p.is_dir()]
+        if taken:
+            raise UsageError(f"{taken[0]}: is a folder; the run's output file of that name cannot be written")
         for p in self.pending:
             os.replace(f"{p}{PARTIAL}", p)
+        for name in OUTPUT_FILES:
+            stale = self.path / name
+            if stale not in self.pending and stale.is_file():
+                stale.unlink()
         self.pending = []
 
     def abort(self):

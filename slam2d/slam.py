@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
+import math
 import os
 import threading
 import time
@@ -31,7 +33,7 @@ import numpy as np
 
 from slam2d import kernel_cache
 from slam2d.allocator import map_large_blocks, return_freed_memory
-from slam2d.config import SlamConfig, load_config
+from slam2d.config import SlamConfig, config_from_dict, load_config
 from slam2d.errors import InputError, UsageError
 from slam2d.gc_freeze import freeze_startup_objects
 from slam2d.geometry import between, compose
@@ -43,6 +45,7 @@ from slam2d.threads import CallerCores
 from slam2d.types import Estimate, Node, Scan
 
 MODES = ("global", "local", "odometry")
+log = logging.getLogger(__name__)
 
 
 #: bytes of local-match score volumes waiting for global SLAM's worker to compute their covariances
@@ -88,6 +91,8 @@ class SlamResult:
         from slam2d.config import dump_config
         from slam2d.output import OutputDir
 
+        if out_dir is None or str(out_dir) == "":
+            raise UsageError("save needs a folder to write into")
         out = OutputDir(out_dir)
         try:
             out.write_trajectory("trajectory.txt", self.stamps, self.poses)
@@ -130,6 +135,11 @@ class Slam:
                  source_name: str = "input"):
         if mode not in MODES:
             raise UsageError(f"mode must be one of {', '.join(MODES)}, not {mode!r}")
+        if isinstance(config, dict):
+            config = config_from_dict(config)
+        if config is not None and not isinstance(config, SlamConfig):
+            hint = " (a YAML file: Slam.from_yaml(path))" if isinstance(config, (str, Path)) else ""
+            raise UsageError(f"Slam takes a SlamConfig or a dict of its sections, not {config!r}{hint}")
         self.config = cfg = config if config is not None else SlamConfig()
         if mode == "global" and not cfg.loop_closure.enabled:
             mode = "local"
@@ -169,6 +179,8 @@ class Slam:
         self._stamps: list[str] = []
         # per scan, in flat arrays of float64 (a list holds a Python object per entry, several times the memory)
         self._times = array("d")
+        self._latest = -math.inf  # the latest stamp so far
+        self._gap_warned = False
         self._local = array("d")  # x, y, θ of every scan, one after the other
         self._ground_truth: list = []
         # what the end of the run needs of every scan goes to disk as it comes (``spill``): the range
@@ -204,9 +216,20 @@ class Slam:
         """Process one scan (in time order) and return its pose estimate as of now."""
         if self._finished:
             raise UsageError("add_scan after finish: start a new Slam")
+        i = len(self._times)
+        if not isinstance(scan, Scan):
+            raise UsageError(f"add_scan takes a slam2d.Scan (e.g. Scan.from_ranges(...)), not {type(scan).__name__}")
+        scan.check(f"scan {i}")
+        if self._times and scan.timestamp < self._latest - MAX_TIME_REVERSAL:
+            raise UsageError(f"scan {i}: stamped {scan.timestamp:.6f}, {self._latest - scan.timestamp:.6g} s before an "
+                             f"earlier scan: scans must come in time order")
+        if self._times and scan.timestamp > self._latest + MAX_TIME_GAP and not self._gap_warned:
+            self._gap_warned = True
+            log.warning("%s: scan %d is stamped %s, %.6g s after the scan before it (a broken stamp, or scans of two "
+                        "runs?)", self.source_name, i, scan.stamp_text, scan.timestamp - self._latest)
+        self._latest = scan.timestamp if not self._times else max(self._latest, scan.timestamp)
         self.start()
         t_call, c_call = time.perf_counter(), time.thread_time()
-        i = len(self._times)
         if scan.index != i:  # node ids are input positions
             scan = dataclasses.replace(scan, index=i)
         t0 = time.perf_counter()
@@ -215,7 +238,7 @@ class Slam:
         for k, v in res.timings.items():
             self._stage(k, v)
         self._count(scan)
-        self._stamps.append(scan.timestamp_text or f"{scan.timestamp:.9f}")
+        self._stamps.append(scan.stamp_text)
         self._times.append(scan.timestamp)
         self._ground_truth.append(scan.ground_truth)
         local = np.array(res.local_pose, dtype=float).reshape(3)
@@ -226,7 +249,7 @@ class Slam:
         if gs is not None:
             t1 = time.perf_counter()
             if res.inserted:  # what global SLAM keeps of the scan, so the worker shares nothing that changes
-                self._global(gs.add_node, NodeStamp(scan.index, scan.timestamp, scan.timestamp_text),
+                self._global(gs.add_node, NodeStamp(scan.index, scan.timestamp, scan.stamp_text),
                              np.array(res.local_pose, dtype=float), res.range_data.hits, self._covariance_of(res),
                              list(res.inserted_into), res.doubt, res.fresh_start)
             for sub in res.finished_submaps:
@@ -406,6 +429,13 @@ class Slam:
         duration = s["duration_s"]
         s["real_time_factor"] = round(duration / wall, 3) if wall > 0 else None
         return s
+
+
+#: a scan stamped this much [s] before the latest one is refused (the readers' own tolerance, for
+#: logs whose stamps wobble: `slam2d.io.carmen`, `slam2d.io.ros_input`)
+MAX_TIME_REVERSAL = 1.0
+#: a scan stamped this much [s] after the latest one is warned about, once
+MAX_TIME_GAP = 3600.0
 
 
 class NodeStamp(NamedTuple):

@@ -1,6 +1,7 @@
 """Records that flow through the pipeline."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from typing import TYPE_CHECKING
@@ -9,6 +10,12 @@ import numpy as np
 
 if TYPE_CHECKING:
     from slam2d.range_data import RangeData
+
+
+def _bad(where: str, message: str):
+    from slam2d.errors import UsageError
+
+    raise UsageError(f"{where}: {message}")
 
 
 @dataclass
@@ -42,6 +49,48 @@ class Scan:
         return int(self.ranges.shape[0])
 
     @property
+    def stamp_text(self) -> str:
+        """The timestamp as the source wrote it, else the shortest decimal that reads back as it
+        (1700000000.2, not 1700000000.200000048)."""
+        return self.timestamp_text or np.format_float_positional(self.timestamp, unique=True, trim="0")
+
+    def check(self, where: str = "scan") -> None:
+        """Raise a UsageError naming the field when the scan cannot be mapped: a stamp, angle or pose that
+        is not a finite number, ranges that are not one non-empty row, arrays of another length than
+        ``ranges``, a zero angle step or a range_max that is not positive. (``Slam.add_scan`` checks
+        every scan, so a call that fails changes nothing; plain-float checks: it runs on every scan.)"""
+        r = self.ranges
+        if not (isinstance(r, np.ndarray) and r.ndim == 1 and r.size and r.dtype.kind == "f"):
+            _bad(where, "ranges must be a non-empty 1-D array of floats, not " + (
+                f"an array of shape {r.shape} and dtype {r.dtype}" if isinstance(r, np.ndarray) else type(r).__name__))
+        for name in ("timestamp", "angle_min", "angle_increment", "range_min"):
+            v = getattr(self, name)
+            try:
+                ok = math.isfinite(v)
+            except TypeError:
+                ok = False
+            if not ok:
+                _bad(where, f"{name} must be a finite number, not {v!r}")
+        if self.angle_increment == 0:
+            _bad(where, "angle_increment must not be 0")
+        if not self.range_max > 0:
+            _bad(where, f"range_max must be positive, not {self.range_max!r}")
+        for name in ("valid", "no_return", "intensities"):
+            a = getattr(self, name)
+            if a is not None and getattr(a, "shape", None) != r.shape:
+                _bad(where, f"{name} has shape {np.shape(a)}, ranges {r.shape}")
+        for name in ("odom_pose", "laser_offset", "ground_truth"):
+            v = getattr(self, name)
+            if v is None and name != "laser_offset":
+                continue
+            try:
+                ok = len(v) == 3 and all(math.isfinite(c) and abs(c) <= 1e9 for c in v)
+            except TypeError:
+                ok = False
+            if not ok:
+                _bad(where, f"{name} must be (x, y, θ), three finite numbers, not {v!r}")
+
+    @property
     def angles(self) -> np.ndarray:
         return self.angle_min + self.angle_increment * np.arange(self.num_beams)
 
@@ -63,16 +112,41 @@ class Scan:
         readings below range_min are neither. ``odom_pose``: the robot's odometry (x, y, θ) at
         ``time``, if any; ``laser_offset``: the laser's pose in the robot frame; ``fields``: any
         other ``Scan`` field (``index``, ``timestamp_text``, ``ground_truth``)."""
-        r = np.asarray(ranges, dtype=np.float32).reshape(-1)
+        from slam2d.errors import UsageError
+
+        try:
+            r = np.asarray(ranges, dtype=np.float32)
+        except (TypeError, ValueError):
+            raise UsageError(f"Scan.from_ranges: ranges must be numbers, not {type(ranges).__name__}") from None
+        if r.ndim != 1:
+            raise UsageError(f"Scan.from_ranges: ranges must be one row of readings, not an array of shape {r.shape}")
+        if intensities is not None and np.shape(intensities) != r.shape:
+            raise UsageError(f"Scan.from_ranges: intensities has shape {np.shape(intensities)}, ranges {r.shape}")
+
+        def pose(v, name):
+            if v is None:
+                return None
+            try:
+                return np.asarray(v, dtype=float).reshape(3)
+            except (TypeError, ValueError):
+                raise UsageError(f"Scan.from_ranges: {name} must be (x, y, θ), not {v!r}") from None
+
+        try:
+            time, angle_min, angle_increment, range_max, range_min = (float(time), float(angle_min), float(angle_increment),
+                                                                      float(range_max), float(range_min))
+        except (TypeError, ValueError):
+            raise UsageError("Scan.from_ranges: time, angle_min, angle_increment, range_max and range_min must be "
+                             "numbers") from None
         with np.errstate(invalid="ignore"):
             no_return = np.isposinf(r) | (r > range_max)
             valid = np.isfinite(r) & (r >= range_min) & (r <= range_max) & (r > 0)
-        return cls(timestamp=float(time), ranges=r, angle_min=float(angle_min), angle_increment=float(angle_increment),
-                   range_min=float(range_min), range_max=float(range_max), valid=valid, no_return=no_return,
+        scan = cls(timestamp=time, ranges=r, angle_min=angle_min, angle_increment=angle_increment, range_min=range_min,
+                   range_max=range_max, valid=valid, no_return=no_return,
                    intensities=None if intensities is None else np.asarray(intensities, dtype=np.float32),
-                   odom_pose=None if odom_pose is None else np.asarray(odom_pose, dtype=float).reshape(3),
-                   laser_offset=np.zeros(3) if laser_offset is None else np.asarray(laser_offset, dtype=float).reshape(3),
-                   **fields)
+                   odom_pose=pose(odom_pose, "odom_pose"),
+                   laser_offset=np.zeros(3) if laser_offset is None else pose(laser_offset, "laser_offset"), **fields)
+        scan.check("Scan.from_ranges")
+        return scan
 
 
 @dataclass

@@ -1,4 +1,5 @@
 """The library API (``slam2d.Slam``): one code path with ``slam2d run``, estimates while running, scans from arrays."""
+import dataclasses
 import json
 import math
 import subprocess
@@ -222,3 +223,106 @@ def test_refinement_points_kept_compactly_are_the_matched_points():
             np.testing.assert_array_equal(got[i], want)
             assert got[i].dtype == np.float32
     slam.finish()
+
+
+def _ok_scan(t=0.0, **kw):
+    args = dict(ranges=np.full(180, 3.0), angle_min=-math.pi / 2, angle_increment=math.pi / 180, range_max=30.0)
+    args.update(kw)
+    return slam2d.Scan.from_ranges(t, args.pop("ranges"), args.pop("angle_min"), args.pop("angle_increment"),
+                                   args.pop("range_max"), **args)
+
+
+@pytest.mark.parametrize("kw, needle", [
+    ({"ranges": np.ones((2, 180))}, "ranges must be one row of readings, not an array of shape (2, 180)"),
+    ({"ranges": None}, "ranges must be one row of readings, not an array of shape ()"),
+    ({"ranges": []}, "ranges must be a non-empty 1-D array of floats"),
+    ({"ranges": ["a", "b"]}, "ranges must be numbers, not list"),
+    ({"angle_increment": 0.0}, "angle_increment must not be 0"),
+    ({"angle_min": math.nan}, "angle_min must be a finite number, not nan"),
+    ({"range_max": 0.0}, "range_max must be positive, not 0.0"),
+    ({"odom_pose": [1.0, 2.0]}, "odom_pose must be (x, y, θ), not [1.0, 2.0]"),
+    ({"odom_pose": [1.0, 2.0, math.inf]}, "odom_pose must be (x, y, θ), three finite numbers"),
+    ({"laser_offset": [0.0, math.nan, 0.0]}, "laser_offset must be (x, y, θ), three finite numbers"),
+    ({"intensities": np.ones(10)}, "intensities has shape (10,), ranges (180,)"),
+])
+def test_from_ranges_refuses_what_cannot_be_mapped(kw, needle):
+    """These went through and broke deep inside (a NaN angle: 'cannot convert float NaN to integer' in
+    the grid; a 2-D array: silently one scan of 360 beams; odd intensities: an invalid results.mcap)."""
+    with pytest.raises(UsageError) as e:
+        _ok_scan(**kw)
+    assert needle in str(e.value) and str(e.value).startswith("Scan.from_ranges: ")
+    with pytest.raises(UsageError, match="^Scan.from_ranges: timestamp must be a finite number, not inf"):
+        _ok_scan(math.inf)
+
+
+def test_add_scan_refuses_bad_calls_and_a_refused_call_changes_nothing():
+    scans = [s for _, s in zip(range(60), slam2d.open_source(BUNDLED))]
+    alone = slam2d.Slam(mode="local")
+    for s in scans:
+        alone.add_scan(s)
+    slam = slam2d.Slam(mode="local")
+    for i, s in enumerate(scans):
+        if i == 30:
+            with pytest.raises(UsageError, match="add_scan takes a slam2d.Scan"):
+                slam.add_scan({"ranges": s.ranges})
+            broken = dataclasses.replace(s, angle_increment=math.nan)  # built directly, not by from_ranges
+            with pytest.raises(UsageError, match=r"^scan 30: angle_increment must be a finite number, not nan"):
+                slam.add_scan(broken)
+            with pytest.raises(UsageError, match=r"^scan 30: stamped .*, 5 s before an earlier scan"):
+                slam.add_scan(dataclasses.replace(s, timestamp=scans[29].timestamp - 5.0))
+        slam.add_scan(s)
+    np.testing.assert_array_equal(slam.finish().poses, alone.finish().poses)
+
+
+def test_slam_takes_a_config_dict_and_names_other_things():
+    assert slam2d.Slam({"grid": {"resolution": 0.1}}).config.grid.resolution == 0.1
+    with pytest.raises(slam2d.Slam2dError, match="grid.resolution"):
+        slam2d.Slam({"grid": {"resolution": -1}})
+    with pytest.raises(UsageError, match=r"a YAML file: Slam.from_yaml\(path\)"):
+        slam2d.Slam("x.yaml")
+
+
+def test_save_refuses_no_folder_a_folder_in_the_way_and_clears_another_run_s_files(tmp_path):
+    scans = [s for _, s in zip(range(120), slam2d.open_source(BUNDLED))]
+    glob_ = slam2d.Slam()
+    for s in scans:
+        glob_.add_scan(s)
+    first = glob_.finish()
+    out = tmp_path / "run"
+    first.save(out, mcap_scans=scans)
+    assert (out / "constraints.jsonl").exists() and (out / "results.mcap").exists()
+    for bad in (None, ""):
+        with pytest.raises(UsageError, match="save needs a folder"):
+            first.save(bad)
+    with pytest.raises(UsageError, match="results.mcap needs the run's 120 scans again; the scans given are fewer"):
+        first.save(tmp_path / "short", mcap_scans=scans[:10])
+    local = slam2d.Slam(mode="local")
+    for s in scans:
+        local.add_scan(s)
+    second = local.finish()
+    second.save(out)  # a local run over the global one: its constraints and results.mcap must not stay
+    assert not (out / "constraints.jsonl").exists() and not (out / "results.mcap").exists()
+    assert json.loads((out / "summary.json").read_text())["mode"] == "local"
+    blocked = tmp_path / "blocked"
+    (blocked / "map.pgm").mkdir(parents=True)
+    before = sorted(p.name for p in blocked.iterdir())
+    with pytest.raises(UsageError, match="map.pgm: is a folder"):
+        second.save(blocked)
+    assert sorted(p.name for p in blocked.iterdir()) == before  # nothing renamed, no partial left
+
+
+def test_a_stamp_far_ahead_is_warned_about_and_stamps_are_written_short(tmp_path, caplog):
+    """Five scans stamped 0, then the clock: the run was 1.7e9 s long without a word. A scan without the
+    source's stamp text is written with the shortest decimal of its stamp (1700000000.2, not .200000048)."""
+    import logging
+
+    slam = slam2d.Slam(mode="local", source_name="api")
+    with caplog.at_level(logging.WARNING, logger="slam2d.slam"):
+        for i in range(8):
+            slam.add_scan(_ok_scan(0.0 if i < 5 else 1700000000.0 + 0.2 * i, odom_pose=(0.01 * i, 0, 0)))
+    msgs = [r.getMessage() for r in caplog.records]
+    assert len(msgs) == 1 and msgs[0].startswith("api: scan 5 is stamped 1700000001.0, 1.7e+09 s after"), msgs
+    slam.finish().save(tmp_path / "o")
+    stamps = [line.split()[0] for line in (tmp_path / "o" / "trajectory.txt").read_text().splitlines()
+              if not line.startswith("#")]
+    assert stamps[5:] == ["1700000001.0", "1700000001.2", "1700000001.4"]

@@ -154,7 +154,7 @@ class GlobalSlam:
         doubted = np.zeros(2) if prev is None else prev["doubted"] + np.square(doubt)
         self.drift.add(j, step, *doubt)
         self.nodes[j] = {"local": local_pose, "time": scan.timestamp, "path": path, "view": view, "doubted": doubted,
-                         "stamp": scan.timestamp_text or f"{scan.timestamp:.9f}",
+                         "stamp": scan.timestamp_text,
                          "points": loop_points(hits, self.lc.voxel_filter_size, self.lc.adaptive_voxel_min_points,
                                                      self.lc.adaptive_voxel_max_length)}
         self.node_order.append(j)

@@ -43,8 +43,18 @@ def occupancy_grid_msg(img_top_first: np.ndarray, resolution: float, origin_xy, 
 
 
 def write_results_mcap(path, source, poses: np.ndarray, map_img, resolution, origin_xy) -> int:
-    scans = [scan for scan, _ in zip(source, poses)]
-    order, texts = ascending_stamps([s.timestamp_text or f"{s.timestamp:.9f}" for s in scans])
+    """``source``: the run's scans again, as many as it has poses (else a UsageError)."""
+    from slam2d.errors import UsageError
+
+    try:
+        it = iter(source)
+    except TypeError:
+        raise UsageError(f"results.mcap needs the run's scans (e.g. open_source(path)), not {type(source).__name__}") from None
+    scans = [scan for scan, _ in zip(it, poses)]
+    if len(scans) < len(poses) or next(it, None) is not None:
+        raise UsageError(f"results.mcap needs the run's {len(poses)} scans again; the scans given are "
+                         f"{'fewer' if len(scans) < len(poses) else 'more'}")
+    order, texts = ascending_stamps([s.stamp_text for s in scans])
     with open(path, "wb") as f:
         w = McapWriter(f)
         sec = nsec = 0
