@@ -540,3 +540,24 @@ def test_consistency_against_a_corrected_carmen_log(tmp_path):
     keys = len(load_reference(SHARED / "intel" / "intel.gfs.log", t, str(src)).scan_indices)
     assert 0 < odo["scans_checked"] == ref["scans_checked"] <= keys
     assert ref["mean_violation"] < odo["mean_violation"] and ref["scans_agreeing"] > odo["scans_agreeing"]
+
+
+def test_ground_truth_on_the_run_s_clock_in_another_order_is_refused(tmp_path):
+    """Matched by position when it has a pose per scan: reversed, its poses were paired with the wrong
+    scans and precision read 0 instead of 0.96. On another clock (make_sparse's) position is all there is."""
+    from slam2d.errors import InputError
+    from slam2d.eval.reference import load_ground_truth
+
+    stamps = [f"{100 + 0.5 * i:.1f}" for i in range(8)]
+    poses = np.array([[0.3 * i, 0.0, 0.1 * i] for i in range(8)])
+    run_t = np.array([float(s) for s in stamps])
+    write_tum(tmp_path / "gt.txt", stamps, poses)
+    assert load_ground_truth(tmp_path / "gt.txt", run_t).matching == "scan_order"
+    write_tum(tmp_path / "other_clock.txt", [f"{1e9 + i:.1f}" for i in range(8)], poses)
+    got = load_ground_truth(tmp_path / "other_clock.txt", run_t)
+    np.testing.assert_allclose(got.poses, poses, atol=1e-6)
+    rev = tmp_path / "rev.txt"
+    rev.write_text("".join(line for line in reversed((tmp_path / "gt.txt").read_text().splitlines(True))
+                           if not line.startswith("#")))
+    with pytest.raises(InputError, match=r"its stamps are the run's, in another order \(pose 0 is stamped 103.500000"):
+        load_ground_truth(rev, run_t)
