@@ -205,8 +205,16 @@ def cmd_run(args) -> int:
 
 
 def cmd_view(args) -> int:
-    if not Path(args.rrd).exists():
-        raise UsageError(f"{args.rrd}: no such file")
+    p = Path(args.rrd)
+    if not p.exists():
+        raise UsageError(f"{p}: no such file")
+    if not p.is_file():
+        raise UsageError(f"{p}: is a folder, not a Rerun recording (.rrd)")
+    with open(p, "rb") as f:
+        head = f.read(4)
+    if not head.startswith(b"RRF"):  # every .rrd the Rerun SDK writes begins so
+        raise UsageError(f"{p}: not a Rerun recording (" + ("empty" if not head else "not an .rrd file") +
+                         "; `slam2d run LOG --out DIR --rerun X.rrd` writes one)")
     from slam2d.viz.rerun import view
 
     return view(args.rrd)

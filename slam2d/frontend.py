@@ -615,7 +615,11 @@ class LocalSlam:
         else:
             self._carried[:] = 0.0
         self.extrapolator.add(scan.timestamp, pose, odom, measured=quality in ("trusted", "unmatched"))
-        inserted = quality != "untrusted" and not self.filter.is_similar(scan.timestamp, pose, odom)
+        # a scan with too few points to match, once there is a submap to match against, carries the
+        # prediction: its free space inserted there would carve the map where the pose is only a guess
+        # (a glitch scan whose every beam is a no-return cleared a half-disc outside the building)
+        guessed = quality == "unmatched" and submap is not None
+        inserted = quality != "untrusted" and not guessed and not self.filter.is_similar(scan.timestamp, pose, odom)
         finished = []
         inserted_into = []
         if inserted:

@@ -318,6 +318,9 @@ class Slam:
         cfg = self.config
         self._counts["nodes"] = len(self._node_spill)
         poses = np.array(self._local, dtype=float).reshape(-1, 3)
+        if self.mode == "odometry" and len(poses) > 1 and np.all(poses == poses[0]):
+            log.warning("%s: the odometry never moves: every scan gets the same pose (slam2d info says whether the "
+                        "log's odometry changes; run without --odometry-only to map from the scans)", self.source_name)
         gs = self.global_slam
         if self._background is not None:
             t1 = time.perf_counter()

@@ -326,3 +326,28 @@ def test_a_stamp_far_ahead_is_warned_about_and_stamps_are_written_short(tmp_path
     stamps = [line.split()[0] for line in (tmp_path / "o" / "trajectory.txt").read_text().splitlines()
               if not line.startswith("#")]
     assert stamps[5:] == ["1700000001.0", "1700000001.2", "1700000001.4"]
+
+
+def test_from_ranges_refuses_a_turn_and_more_and_range_min_above_range_max():
+    with pytest.raises(UsageError, match=r"360 beams 1 rad apart span 20569°, more than a full turn"):
+        _ok_scan(ranges=np.full(360, 3.0), angle_increment=1.0)
+    with pytest.raises(UsageError, match=r"range_min 20.0 must be below range_max 12.0"):
+        _ok_scan(range_min=20.0, range_max=12.0)
+
+
+def test_a_scan_without_returns_mid_run_does_not_carve_the_map():
+    """A glitch scan whose every beam is a no-return cannot be matched; inserted at its predicted pose it
+    cleared a half-disc of free space outside the building. Scans local SLAM could not match are not
+    inserted once a submap exists."""
+    scans = [s for _, s in zip(range(120), slam2d.open_source(BUNDLED))]
+    clean = slam2d.Slam(mode="local")
+    glitch = slam2d.Slam(mode="local")
+    for i, s in enumerate(scans):
+        clean.add_scan(s)
+        glitch.add_scan(dataclasses.replace(s, valid=np.zeros_like(s.valid), no_return=np.ones_like(s.valid))
+                        if i == 50 else s)
+    a, b = clean.finish(), glitch.finish()
+    assert 50 not in {n.scan_index for n in b.nodes}
+    assert a.map.shape == b.map.shape  # inserted, the glitch grew the map from 392 to 466 rows
+    free = lambda r: int(np.count_nonzero((r.map.known > 0) & (r.map.prob < 0.5)))  # noqa: E731
+    assert free(b) <= 1.01 * free(a)  # the runs differ only by the steps after the glitch

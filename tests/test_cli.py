@@ -252,3 +252,34 @@ def test_no_odometry_ignores_the_inputs_odometry(tmp_path):
     assert s["ate_vs_ground_truth"]["trans_m"]["rmse"] < 0.15
     r = slam2d("run", BUNDLED, "--out", tmp_path / "m", "--no-odometry", "--odometry-only")
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "exclude each other" in r.stderr
+
+
+def test_view_refuses_what_is_no_recording(tmp_path, capsys):
+    """An empty, text or MCAP file named .rrd went straight to the viewer (Rerun's own log lines, exit 1)."""
+    (tmp_path / "empty.rrd").write_bytes(b"")
+    (tmp_path / "text.rrd").write_text("hello")
+    for name, why in (("empty.rrd", "empty"), ("text.rrd", "not an .rrd file")):
+        assert main(["view", str(tmp_path / name)]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"slam2d: error: {tmp_path / name}: not a Rerun recording ({why};") and err.count("\n") == 1
+    assert main(["view", str(tmp_path)]) == 2
+    assert "is a folder, not a Rerun recording" in capsys.readouterr().err
+
+
+def test_consistency_refuses_a_trajectory_of_another_log(tmp_path, flaser_line, capsys):
+    run = tmp_path / "run"
+    assert main(["run", str(BUNDLED), "--out", str(run), "--no-progress", "--max-scans", "60", "--no-loop-closure"]) == 0
+    capsys.readouterr()
+    other = tmp_path / "other.clf"
+    other.write_text("".join(flaser_line([1.0, 2.0, 3.0], ts=f"{100 + i}.0") for i in range(80)))
+    assert main(["eval", "consistency", str(run / "trajectory.txt"), "--run-input", str(other)]) == 2
+    err = capsys.readouterr().err
+    assert "scan 0 is stamped 100.000000 but the trajectory's pose 0 1700000000.000000" in err and err.count("\n") == 1
+    assert main(["eval", "consistency", str(run / "trajectory.txt")]) == 0  # its own log
+
+
+def test_odometry_only_says_when_the_odometry_never_moves(tmp_path, flaser_line):
+    log = tmp_path / "still.clf"
+    log.write_text("".join(flaser_line([1.0 + 0.01 * i, 2.0, 3.0], ts=f"{100 + i}.0") for i in range(20)))
+    r = slam2d("run", log, "--out", tmp_path / "o", "--odometry-only", "--no-progress")
+    assert r.returncode == 0 and "the odometry never moves: every scan gets the same pose" in r.stderr, r.stderr

@@ -174,3 +174,22 @@ def test_a_run_whose_scans_all_carry_one_stamp_is_an_input_error():
         slam.add_scan(s)
     with pytest.raises(InputError, match=r"^same.bag: every scan is stamped 5.0: the timestamps are unusable"):
         slam.finish()
+
+
+@pytest.mark.parametrize("content", [b"", b"abc", b"junk\n", b"\x89MCAP0\r\n", None])
+def test_a_few_bytes_named_mcap_are_one_line(tmp_path, capsys, content):
+    """Shorter than a record header they were a struct.error traceback (None: the first 100 bytes of a real file)."""
+    from conftest import BUNDLED
+
+    p = tmp_path / "x.mcap"
+    p.write_bytes(BUNDLED.read_bytes()[:100] if content is None else content)
+    for cmd in ("info", "run"):
+        assert main([cmd, str(p)] + (["--out", str(tmp_path / "o"), "--no-progress"] if cmd == "run" else [])) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"slam2d: error: {p}") and err.count("\n") == 1 and "Traceback" not in err, err
+
+
+def test_a_scan_spanning_more_than_a_turn_names_its_record(tmp_path):
+    """angle_increment given in degrees: 3 beams 10 rad apart."""
+    p = _bag(tmp_path / "deg.bag", scans=[(1, _scan(1)), (2, _scan(2, inc=10.0, angle_max=19.9))])
+    assert _error(p).startswith(f"{p}: record 1: 3 beams 10 rad apart span 1146°, more than a full turn")

@@ -117,7 +117,7 @@ def load_reference(ref_path, run_stamps: np.ndarray, run_input: str | None, tole
     return Reference(ref.scan_indices[keep], ref.poses[keep], ref.kind, ref.total_reference_scans)
 
 
-def _check_scan_order(run_stamps: np.ndarray, input_stamps: np.ndarray, run_input, tolerance: float) -> None:
+def check_scan_order(run_stamps: np.ndarray, input_stamps: np.ndarray, run_input, tolerance: float = 1e-3) -> None:
     """The reference is matched to the input's scans by position, so the trajectory's poses must be
     those scans in order: a trajectory re-sorted by stamp, or of another run, would be scored against
     the wrong poses. trajectory.txt may move a repeated stamp later by 1 µs a line (`slam2d.io.trajectory`)."""
@@ -164,7 +164,7 @@ def _load_reference(ref_path, run_stamps, run_input, tolerance) -> Reference:
         idx, poses, total = associate_by_ranges(recorded(open_source(run_input)), corrected)
         if len(idx) == 0:
             raise InputError(ref_path, f"none of its scans has the same range readings as a scan of {run_input}")
-        _check_scan_order(run_stamps, np.array(stamps), run_input, tolerance)
+        check_scan_order(run_stamps, np.array(stamps), run_input, tolerance)
         return Reference(idx, poses, "corrected_carmen", total)
     from slam2d.io.trajectory import read_tum
 

@@ -25,9 +25,12 @@ log = logging.getLogger("slam2d.io")
 
 
 def _mcap_errors():
+    import struct
+
     from mcap.exceptions import McapError
 
-    return (McapError, ValueError, KeyError, EOFError, OSError, IndexError, AssertionError)
+    # struct.error: a file shorter than a record header (a few bytes of junk, or cut right after the magic)
+    return (McapError, ValueError, KeyError, EOFError, OSError, IndexError, AssertionError, struct.error)
 
 
 class McapLog:

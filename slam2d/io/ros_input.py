@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from slam2d.errors import InputError
+from slam2d.errors import InputError, UsageError
 from slam2d.geometry import interpolate_pose, quaternion_to_yaw
 from slam2d.io.ros2_msgs import stamp_text
 from slam2d.io.tf_tree import LaserMount, TfTree, frame_name, laser_mount
@@ -224,10 +224,13 @@ class ScanConverter:
             log.warning("%s: record %d: the scan stamped %s lies outside the odometry's stamps (%s to %s); such a scan "
                         "takes the odometry's first or last pose (are the scans and the odometry on one clock?)",
                         self.path, k, text, f"{self.odom.t[0]:.3f}", f"{self.odom.t[-1]:.3f}")
-        return Scan.from_ranges(t, r, a0, da, m.range_max,
-                                odom_pose=self.odom.at(t, nth) if self.odom else None, range_min=m.range_min,
-                                laser_offset=self.mount.pose, intensities=inten, timestamp_text=text, index=k,
-                                ground_truth=self.gt.at(t, nth) if self.gt else None)
+        try:
+            return Scan.from_ranges(t, r, a0, da, m.range_max,
+                                    odom_pose=self.odom.at(t, nth) if self.odom else None, range_min=m.range_min,
+                                    laser_offset=self.mount.pose, intensities=inten, timestamp_text=text, index=k,
+                                    ground_truth=self.gt.at(t, nth) if self.gt else None)
+        except UsageError as e:  # the scan's own fields: named with the file and record
+            raise InputError(self.path, str(e).removeprefix("Scan.from_ranges: "), record=k) from None
 
     def _check_length(self, k: int, m, n: int) -> None:
         """Warn once when a scan's beam count disagrees with its angle_min, angle_max and
