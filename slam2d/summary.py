@@ -5,6 +5,7 @@ import math
 import platform
 import resource
 import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -106,6 +107,8 @@ def run_summary(input_path, mode, times: np.ndarray, counts: dict, timings: dict
         "slam2d_version": _version(),
         "python": platform.python_version(),
         "input": str(input_path),
+        # the same, absolute: what `slam2d eval` reads the run's scans from, whatever folder it runs in
+        "input_absolute": str(Path(input_path).resolve()) if Path(str(input_path)).exists() else None,
         "mode": mode,
         "scans": int(len(times)),
         "duration_s": round(duration, 6),

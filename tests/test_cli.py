@@ -283,3 +283,20 @@ def test_odometry_only_says_when_the_odometry_never_moves(tmp_path, flaser_line)
     log.write_text("".join(flaser_line([1.0 + 0.01 * i, 2.0, 3.0], ts=f"{100 + i}.0") for i in range(20)))
     r = slam2d("run", log, "--out", tmp_path / "o", "--odometry-only", "--no-progress")
     assert r.returncode == 0 and "the odometry never moves: every scan gets the same pose" in r.stderr, r.stderr
+
+
+def test_eval_finds_the_run_input_from_any_folder(tmp_path):
+    """summary.json keeps the input as given and absolute: read from another folder, a relative path named
+    another log of the same name (or none), silently or with a misleading error."""
+    import shutil
+
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    shutil.copy(BUNDLED, tmp_path / "a" / "x.mcap")
+    r = slam2d("run", "x.mcap", "--out", "run", "--no-progress", "--max-scans", "40", "--no-loop-closure",
+               cwd=tmp_path / "a")
+    assert r.returncode == 0, r.stderr
+    summary = json.loads((tmp_path / "a" / "run" / "summary.json").read_text())
+    assert summary["input"] == "x.mcap" and summary["input_absolute"] == str((tmp_path / "a" / "x.mcap").resolve())
+    r = slam2d("eval", "consistency", tmp_path / "a" / "run" / "trajectory.txt", cwd=tmp_path / "b")
+    assert r.returncode == 0 and "20 scans" in r.stdout, r.stderr

@@ -59,10 +59,12 @@ def run_input_of(traj_path: Path, given: str | None) -> str | None:
     summary = Path(traj_path).parent / "summary.json"
     if summary.exists():
         try:
-            found = json.loads(summary.read_text()).get("input")
+            data = json.loads(summary.read_text())
         except (json.JSONDecodeError, OSError):
             return None
-        return found
+        # the absolute path first: the one as given was relative to wherever the run was started, and
+        # read from another folder it could name another log of the same name
+        return data.get("input_absolute") or data.get("input")
     return None
 
 
