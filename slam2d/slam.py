@@ -105,7 +105,8 @@ class SlamResult:
                 from slam2d.io.results_mcap import write_results_mcap
 
                 img, ox, oy = occupancy_image(self.map, *self.config.map.cell_thresholds(self.config.grid))
-                write_results_mcap(out.staged("results.mcap"), mcap_scans, self.poses, img, self.map.resolution, (ox, oy))
+                write_results_mcap(out.staged("results.mcap"), mcap_scans, self.poses, img, self.map.resolution, (ox, oy),
+                                   self.stamps)
             out.write_json("summary.json", self.summary)
             out.commit()
         except BaseException:

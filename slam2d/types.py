@@ -137,12 +137,21 @@ class Scan:
             except (TypeError, ValueError):
                 raise UsageError(f"Scan.from_ranges: {name} must be (x, y, θ), not {v!r}") from None
 
-        try:
-            time, angle_min, angle_increment, range_max, range_min = (float(time), float(angle_min), float(angle_increment),
-                                                                      float(range_max), float(range_min))
-        except (TypeError, ValueError):
-            raise UsageError("Scan.from_ranges: time, angle_min, angle_increment, range_max and range_min must be "
-                             "numbers") from None
+        def number(v, name):
+            if isinstance(v, (bool, str, bytes)) or v is None:
+                raise UsageError(f"Scan.from_ranges: {name} must be a number, not {v!r}")
+            try:
+                return float(v)
+            except (TypeError, ValueError):
+                raise UsageError(f"Scan.from_ranges: {name} must be a number, not {v!r}") from None
+
+        time, angle_min, angle_increment, range_max, range_min = (
+            number(time, "time"), number(angle_min, "angle_min"), number(angle_increment, "angle_increment"),
+            number(range_max, "range_max"), number(range_min, "range_min"))
+        with np.errstate(invalid="ignore"):
+            negative = np.flatnonzero(np.isfinite(r) & (r < 0))  # -inf is REP 117's "too close"
+        if negative.size:
+            raise UsageError(f"Scan.from_ranges: negative range reading {float(r[negative[0]]):g} at beam {negative[0]}")
         with np.errstate(invalid="ignore"):
             no_return = np.isposinf(r) | (r > range_max)
             valid = np.isfinite(r) & (r >= range_min) & (r <= range_max) & (r > 0)

@@ -237,6 +237,9 @@ def _ok_scan(t=0.0, **kw):
     ({"ranges": None}, "ranges must be one row of readings, not an array of shape ()"),
     ({"ranges": []}, "ranges must be a non-empty 1-D array of floats"),
     ({"ranges": ["a", "b"]}, "ranges must be numbers, not list"),
+    ({"ranges": [1.0, -2.0, 3.0]}, "negative range reading -2 at beam 1"),
+    ({"range_max": True}, "range_max must be a number, not True"),
+    ({"angle_min": "0.5"}, "angle_min must be a number, not '0.5'"),
     ({"angle_increment": 0.0}, "angle_increment must not be 0"),
     ({"angle_min": math.nan}, "angle_min must be a finite number, not nan"),
     ({"range_max": 0.0}, "range_max must be positive, not 0.0"),
@@ -296,6 +299,9 @@ def test_save_refuses_no_folder_a_folder_in_the_way_and_clears_another_run_s_fil
             first.save(bad)
     with pytest.raises(UsageError, match="results.mcap needs the run's 120 scans again; the scans given are fewer"):
         first.save(tmp_path / "short", mcap_scans=scans[:10])
+    shifted = [dataclasses.replace(s, timestamp=s.timestamp + 100, timestamp_text=None) for s in scans]
+    with pytest.raises(UsageError, match=r"results.mcap needs the run's scans again: scan 0 given is stamped 1700000100.0"):
+        first.save(tmp_path / "other", mcap_scans=shifted)
     local = slam2d.Slam(mode="local")
     for s in scans:
         local.add_scan(s)

@@ -42,8 +42,9 @@ def occupancy_grid_msg(img_top_first: np.ndarray, resolution: float, origin_xy, 
             "data": data.ravel().tolist()}
 
 
-def write_results_mcap(path, source, poses: np.ndarray, map_img, resolution, origin_xy) -> int:
-    """``source``: the run's scans again, as many as it has poses (else a UsageError)."""
+def write_results_mcap(path, source, poses: np.ndarray, map_img, resolution, origin_xy, stamps=None) -> int:
+    """``source``: the run's scans again, as many as it has poses and, given the run's ``stamps``,
+    stamped as those (else a UsageError: another run's scans would carry its stamps into the file)."""
     from slam2d.errors import UsageError
 
     try:
@@ -54,6 +55,11 @@ def write_results_mcap(path, source, poses: np.ndarray, map_img, resolution, ori
     if len(scans) < len(poses) or next(it, None) is not None:
         raise UsageError(f"results.mcap needs the run's {len(poses)} scans again; the scans given are "
                          f"{'fewer' if len(scans) < len(poses) else 'more'}")
+    if stamps is not None:
+        for i, (scan, stamp) in enumerate(zip(scans, stamps)):
+            if scan.stamp_text != stamp:
+                raise UsageError(f"results.mcap needs the run's scans again: scan {i} given is stamped {scan.stamp_text}, "
+                                 f"the run's {stamp}")
     order, texts = ascending_stamps([s.stamp_text for s in scans])
     with open(path, "wb") as f:
         w = McapWriter(f)
