@@ -193,9 +193,10 @@ def assess(cfg, nodes, poses, local: dict | None = None, loops: dict | None = No
             level = max(level, 1)
             reasons.append(f"{100 * untrusted:.1f} % of scans could not be matched with confidence")
         if scans:
-            # scans local SLAM never tried to match (too few points left after filtering, or no submap yet):
-            # their poses are the prediction's; standing still is not among them (``still``)
-            unmatched = 1.0 - (matched + local.get("still", 0)) / scans
+            # scans local SLAM never tried to match (too few points left after filtering): their poses are
+            # the prediction's. Not among them: standing still (``still``), and the first scan, which
+            # has no submap to be matched against (a run of 5 scans is not 20 % unmatched)
+            unmatched = max(0.0, 1.0 - (matched + local.get("still", 0) + 1) / scans)
             out["unmatched_share"] = round(unmatched, 4)
             if unmatched > WARN_UNMATCHED:
                 level = max(level, 2 if unmatched > BROKEN_UNMATCHED else 1)

@@ -190,7 +190,43 @@ def test_one_line_with_another_max_range_does_not_set_the_threshold(tmp_path):
     log = CarmenLog(write(tmp_path, "".join(lines)))
     assert log.facts().no_return_value == pytest.approx(30.0)
     assert log.facts().no_return_evidence[-1]["why"] == "the max_range field of the ROBOTLASER1 lines (49 of 50 lines)"
-    assert all(s.valid.tolist() == [True] * 4 + [False] for s in log)
+    # each line's own max_range holds for its own readings: line 7's say it saw nothing within 0.01 m
+    assert all(s.valid.tolist() == ([False] * 5 if s.index == 7 else [True] * 4 + [False]) for s in log)
+
+
+def test_lines_stating_another_max_range_keep_their_own_no_returns(tmp_path):
+    """40 % of the lines state max_range 8 and write 8.0 for no return, the rest 30: the log's threshold
+    is 30, but the 8.0 readings of those lines must not become walls."""
+    lines = []
+    for i in range(50):
+        mr = "8.0" if i % 5 < 2 else "30.0"
+        lines.append(f"ROBOTLASER1 0 -1.5708 3.1416 0.785398 {mr} 0.01 0 5 1.0 2.0 8.0 4.0 {mr} 0 "
+                     f"0.22 0 0 0 0 0 0 0 0 0 0 {200 + i}.0 host {i}.0\n")
+    log = CarmenLog(write(tmp_path, "".join(lines)))
+    assert log.facts().no_return_value == pytest.approx(30.0)
+    for s in log:
+        assert s.valid.tolist() == ([True, True, False, True, False] if s.index % 5 < 2 else [True] * 4 + [False])
+
+
+def test_a_reading_beyond_any_laser_is_a_no_return_with_a_warning(tmp_path, flaser_line, caplog):
+    """A huge value too rare to show as a spike (1e6 three times) refused the whole log; it is read as a
+    no-return, with one warning."""
+    import logging
+
+    text = "".join(flaser_line([1.0, "1e6" if i in (3, 9, 20) else 2.0, 3.0], ts=f"{100 + i}.0") for i in range(40))
+    with caplog.at_level(logging.WARNING):
+        scans = list(CarmenLog(write(tmp_path, text)))
+    assert [s.index for s in scans if not s.valid[1]] == [3, 9, 20] and all(scans[i].no_return[1] for i in (3, 9, 20))
+    assert sum("beyond 100000 m read as a no-return" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_a_scan_without_any_reading_takes_the_log_s_farthest_as_its_range(tmp_path, flaser_line):
+    """A scan all 0 or all inf in a log without a no-return value had range_max 0, which the run refused."""
+    text = "".join(flaser_line(["inf", "inf", "inf"] if i == 5 else [1.0, 2.0 + 0.1 * i, 3.0], ts=f"{100 + i}.0")
+                   for i in range(20))
+    scans = list(CarmenLog(write(tmp_path, text)))
+    assert scans[5].range_max == pytest.approx(3.9) and not scans[5].valid.any()
+    scans[5].check()
 
 
 def test_no_saturation_means_every_reading_is_a_hit(tmp_path, flaser_line):
@@ -235,8 +271,6 @@ BAD = {
                          "FLASER 1 1.0 0 0 0 0 0 0 100.2 nohost 0.1\n", 3, "goes back 9e+08 s (more than 1.0 s) "
                          "behind the scan of line 2"),
     "huge pose": ("FLASER 1 1.0 1e300 0 0 0 0 0 100.0 nohost 0.1\n", 1, "pose field beyond 1e+09 m"),
-    "huge reading": ("FLASER 2 1.0 1e300 0 0 0 0 0 0 100.0 nohost 0.1\n", 1,
-                     "range reading 1e+300 (beam 1) beyond 100000 m: no laser measures that far"),
     "nan start angle": ("ROBOTLASER1 0 nan 3.1416 0.785398 30.0 0.01 0 2 1 2 0 0 0 0 0 0 0 0 0 0 0 0 100.0 h 0\n", 1,
                         "start angle must be a number, found nan"),
     "resolution in degrees": ("ROBOTLASER1 0 -90 180 1 30.0 0.01 0 181 " + "1 " * 181 +

@@ -542,10 +542,10 @@ def test_consistency_against_a_corrected_carmen_log(tmp_path):
     assert ref["mean_violation"] < odo["mean_violation"] and ref["scans_agreeing"] > odo["scans_agreeing"]
 
 
-def test_ground_truth_on_the_run_s_clock_in_another_order_is_refused(tmp_path):
-    """Matched by position when it has a pose per scan: reversed, its poses were paired with the wrong
-    scans and precision read 0 instead of 0.96. On another clock (make_sparse's) position is all there is."""
-    from slam2d.errors import InputError
+def test_ground_truth_on_the_run_s_clock_in_another_order_is_matched_by_stamp(tmp_path):
+    """Matched by position when it has a pose per scan: reversed (or sorted by time, where the run's
+    stamps go back), its poses were paired with the wrong scans and precision read 0 instead of 0.96.
+    On the run's clock the stamps now pair them; on another clock (make_sparse's) position is all there is."""
     from slam2d.eval.reference import load_ground_truth
 
     stamps = [f"{100 + 0.5 * i:.1f}" for i in range(8)]
@@ -559,5 +559,20 @@ def test_ground_truth_on_the_run_s_clock_in_another_order_is_refused(tmp_path):
     rev = tmp_path / "rev.txt"
     rev.write_text("".join(line for line in reversed((tmp_path / "gt.txt").read_text().splitlines(True))
                            if not line.startswith("#")))
-    with pytest.raises(InputError, match=r"its stamps are the run's, in another order \(pose 0 is stamped 103.500000"):
-        load_ground_truth(rev, run_t)
+    got = load_ground_truth(rev, run_t)
+    assert got.matching == "timestamp"
+    np.testing.assert_allclose(got.poses, poses, atol=1e-6)
+
+
+def test_a_run_made_with_scan_period_is_evaluated_against_its_log(tmp_path, flaser_line):
+    """Its stamps are k × period, not the log's (broken) ones: the order check must not refuse it (the
+    sparse logs of ../shared are all run so)."""
+    log = tmp_path / "wrap.clf"
+    log.write_text("".join(flaser_line([1.0 + 0.1 * i, 2.0, 3.0], pose=(0.5 * i, 0, 0), odom=(0.5 * i, 0, 0),
+                                       ts="4294967296.0") for i in range(12)))
+    stamps = [f"{0.2 * i:.6f}" for i in range(12)]
+    write_tum(tmp_path / "t.txt", stamps, np.array([[0.5 * i, 0.0, 0.0] for i in range(12)]))
+    r = subprocess.run([sys.executable, "-m", "slam2d.cli", "eval", "ate", str(tmp_path / "t.txt"), str(log),
+                        "--run-input", str(log), "--json"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["matched_scans"] == 12

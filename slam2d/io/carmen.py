@@ -70,6 +70,9 @@ MAX_TIME_GAP = 3600.0
 #: a finite reading beyond this [m], or a pose coordinate beyond MAX_COORDINATE, is corrupt data
 MAX_READING = 1e5
 MAX_COORDINATE = 1e9
+#: beams may span this share more than a full turn (a resolution printed with 6 decimals, 0.008727 for
+#: 0.5°, adds up over 721 beams); a resolution in degrees read as radians spans 57 times as much
+FULL_TURN_SLACK = 1e-3
 #: a repeated reading near the top is a no-return value when at least this share of beams has it
 SATURATION_MIN_SHARE = 1e-4
 SATURATION_MIN_COUNT = 5
@@ -253,6 +256,12 @@ class NoReturnSurvey:
         self._survey_batch()
         if self._top.size == self.TOP:
             return float(self._top[0])
+        return float(self._top[-1]) if self._top.size else -math.inf
+
+    @property
+    def largest(self) -> float:
+        """The largest finite reading surveyed (-inf before any)."""
+        self._survey_batch()
         return float(self._top[-1]) if self._top.size else -math.inf
 
     def _floor_max(self) -> float:
@@ -498,7 +507,7 @@ def _parse_laser(path, lineno, parts) -> _Parsed:
         raise InputError(path, f"angular resolution must be positive, found {res}", line=lineno)
     if not math.isfinite(start):
         raise InputError(path, f"start angle must be a number, found {start}", line=lineno)
-    if (n - 1) * res > 2 * math.pi + 1e-6:
+    if (n - 1) * res > 2 * math.pi * (1 + FULL_TURN_SLACK):
         raise InputError(path, f"{n} beams {res} rad apart span {math.degrees((n - 1) * res):.0f}°, more than a full "
                          "turn (is the angular resolution in degrees?)", line=lineno)
     if kind in _RAW_TYPES:  # the robot pose comes from the ODOM lines (``CarmenLog._to_scan``)
@@ -521,6 +530,14 @@ class CarmenLog:
         # the first pass keeps its parsed laser records (memory up to a budget, then a temporary
         # file), so the second pass neither decompresses nor parses again
         self._spool: _RecordStore | None = None
+        self._far_warned = False
+
+    def _largest_reading(self) -> float:
+        """The read laser's largest finite reading (1 m in a log without any), the range_max of a scan
+        that has no reading of its own."""
+        las = self.facts().lasers[self.facts().laser_kind]
+        top = min(las.survey.largest, MAX_READING)
+        return top if top > 0 else 1.0
 
     def num_scans(self) -> int:
         return self.facts().num_scans
@@ -657,17 +674,27 @@ class CarmenLog:
         r = p.ranges
         valid = np.empty(r.shape, dtype=np.bool_)
         no_ret = np.empty(r.shape, dtype=np.bool_)
+        if p.max_range is not None:  # a line's own max_range holds for its readings (the log's may be another's)
+            no_return = p.max_range if no_return is None else min(no_return, p.max_range)
         negative, all_nan = classify_readings(r, math.nan if no_return is None else float(no_return), valid, no_ret)
         if negative >= 0:  # -inf included
             raise InputError(path, f"negative range reading {r[negative]} (beam {negative})", line=lineno)
         if all_nan:
             raise InputError(path, "every range reading is NaN", line=lineno)
         with np.errstate(invalid="ignore"):
-            far = np.flatnonzero(np.isfinite(r) & (r > MAX_READING) & ~no_ret)  # a huge no-return value is one
-        if far.size:
-            raise InputError(path, f"range reading {r[far[0]]:g} (beam {far[0]}) beyond {MAX_READING:g} m: no laser "
-                             "measures that far", line=lineno)
-        range_max = float(no_return) if no_return is not None else float(np.nanmax(np.where(np.isinf(r), np.nan, r))) if np.any(np.isfinite(r)) else 0.0
+            far = np.flatnonzero(valid & (r > MAX_READING))
+        if far.size:  # no laser measures that far: a no-return value too rare to show as a spike, or corrupt
+            valid[far] = False
+            no_ret[far] = True
+            if not self._far_warned:
+                self._far_warned = True
+                log.warning("%s:%d: range reading %g (beam %d) beyond %g m read as a no-return (so is any such reading)",
+                            path, lineno, r[far[0]], far[0], MAX_READING)
+        if no_return is not None:
+            range_max = float(no_return)
+        else:  # the scan's farthest reading; one without any reading takes the log's farthest
+            finite = r[np.isfinite(r) & (r <= MAX_READING)]
+            range_max = float(finite.max()) if finite.size and finite.max() > 0 else self._largest_reading()
         with np.errstate(over="ignore"):  # a no-return value beyond float32 (1e300) reads as inf, a no-return too
             r32 = r.astype(np.float32)
         return Scan(
