@@ -222,7 +222,8 @@ class Slam:
             raise UsageError(f"add_scan takes a slam2d.Scan (e.g. Scan.from_ranges(...)), not {type(scan).__name__}")
         scan.check(f"{self.source_name}: scan {i}")
         if self._times and scan.timestamp < self._latest - MAX_TIME_REVERSAL:
-            raise UsageError(f"scan {i}: stamped {scan.timestamp:.6f}, {self._latest - scan.timestamp:.6g} s before an "
+            raise UsageError(f"{self.source_name}: scan {i}: stamped {scan.timestamp:.6f}, "
+                             f"{self._latest - scan.timestamp:.6g} s before an "
                              f"earlier scan: scans must come in time order")
         if self._times and scan.timestamp > self._latest + MAX_TIME_GAP and not self._gap_warned:
             self._gap_warned = True

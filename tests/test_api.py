@@ -269,9 +269,9 @@ def test_add_scan_refuses_bad_calls_and_a_refused_call_changes_nothing():
             with pytest.raises(UsageError, match="add_scan takes a slam2d.Scan"):
                 slam.add_scan({"ranges": s.ranges})
             broken = dataclasses.replace(s, angle_increment=math.nan)  # built directly, not by from_ranges
-            with pytest.raises(UsageError, match=r"^scan 30: angle_increment must be a finite number, not nan"):
+            with pytest.raises(UsageError, match=r"^input: scan 30: angle_increment must be a finite number, not nan"):
                 slam.add_scan(broken)
-            with pytest.raises(UsageError, match=r"^scan 30: stamped .*, 5 s before an earlier scan"):
+            with pytest.raises(UsageError, match=r"^input: scan 30: stamped .*, 5 s before an earlier scan"):
                 slam.add_scan(dataclasses.replace(s, timestamp=scans[29].timestamp - 5.0))
         slam.add_scan(s)
     np.testing.assert_array_equal(slam.finish().poses, alone.finish().poses)
