@@ -56,9 +56,10 @@ class Scan:
 
     def check(self, where: str = "scan") -> None:
         """Raise a UsageError naming the field when the scan cannot be mapped: a stamp, angle or pose that
-        is not a finite number, ranges that are not one non-empty row, arrays of another length than
-        ``ranges``, a zero angle step or a range_max that is not positive. (``Slam.add_scan`` checks
-        every scan, so a call that fails changes nothing; plain-float checks: it runs on every scan.)"""
+        is not a finite number, ranges that are not one non-empty row of floats, arrays of another
+        length than ``ranges``, a zero angle step, beams spanning more than a full turn, a range_max
+        that is not positive or not above range_min. (``Slam.add_scan`` checks every scan, so a call
+        that fails changes nothing; plain-float checks: it runs on every scan.)"""
         r = self.ranges
         if not (isinstance(r, np.ndarray) and r.ndim == 1 and r.size and r.dtype.kind == "f"):
             _bad(where, "ranges must be a non-empty 1-D array of floats, not " + (
