@@ -17,7 +17,18 @@ from slam2d.errors import ConfigError
 
 
 class _Section(BaseModel):
+    """A config section. Changed in code (``cfg.grid.resolution = x``), a bad value is a ConfigError
+    naming the key, as from a YAML file. (Built in code, ``SlamConfig(grid={...})`` raises pydantic's
+    ValidationError: overriding ``__init__`` would take over the validation of nested sections and
+    lose the key path and file name that ``config_from_dict`` reports.)"""
+
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    def __setattr__(self, name, value):
+        try:
+            super().__setattr__(name, value)
+        except ValidationError as e:
+            raise _config_error(type(self).__name__, e) from None
 
     @field_validator("*", mode="before")
     @classmethod
@@ -224,13 +235,16 @@ def _format_error(err: dict) -> str:
     return f"key '{key}': {err.get('msg')}"
 
 
+def _config_error(source: str, e: ValidationError) -> ConfigError:
+    more = f" (and {e.error_count() - 1} more)" if e.error_count() > 1 else ""
+    return ConfigError(f"{source}: {_format_error(e.errors()[0])}{more}")
+
+
 def config_from_dict(data: dict[str, Any] | None, source: str = "config") -> SlamConfig:
     try:
         return SlamConfig.model_validate(data or {})
     except ValidationError as e:
-        first = e.errors()[0]
-        more = f" (and {e.error_count() - 1} more)" if e.error_count() > 1 else ""
-        raise ConfigError(f"{source}: {_format_error(first)}{more}") from None
+        raise _config_error(source, e) from None
 
 
 def load_config(path: str | Path | None) -> SlamConfig:

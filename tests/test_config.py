@@ -63,3 +63,12 @@ def test_bad_yaml_names_file_and_line(tmp_path):
 def test_missing_config_file(tmp_path):
     with pytest.raises(ConfigError, match="no such config file"):
         load_config(tmp_path / "nope.yaml")
+
+
+def test_a_bad_value_set_in_code_is_a_config_error():
+    """cfg.grid.resolution = -1 raised pydantic's ValidationError; the YAML path names the key as a ConfigError."""
+    cfg = SlamConfig()
+    with pytest.raises(ConfigError, match=r"^GridConfig: key 'resolution': Input should be greater than or equal to 0.01"):
+        cfg.grid.resolution = -1
+    cfg.grid.resolution = 0.1
+    assert cfg.grid.resolution == 0.1
