@@ -42,7 +42,7 @@ from slam2d.grid.probability_grid import ProbabilityGrid
 from slam2d.observer import Observer
 from slam2d.spill import ArraySpill
 from slam2d.threads import CallerCores
-from slam2d.types import Estimate, Node, Scan
+from slam2d.types import MAX_TIME_GAP, MAX_TIME_REVERSAL, Estimate, Node, Scan
 
 MODES = ("global", "local", "odometry")
 log = logging.getLogger(__name__)
@@ -436,11 +436,6 @@ class Slam:
         return s
 
 
-#: a scan stamped this much [s] before the latest one is refused (the readers' own tolerance, for
-#: logs whose stamps wobble: `slam2d.io.carmen`, `slam2d.io.ros_input`)
-MAX_TIME_REVERSAL = 1.0
-#: a scan stamped this much [s] after the latest one is warned about, once
-MAX_TIME_GAP = 3600.0
 
 
 class NodeStamp(NamedTuple):

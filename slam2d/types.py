@@ -12,6 +12,13 @@ if TYPE_CHECKING:
     from slam2d.range_data import RangeData
 
 
+#: a scan stamped earlier than the latest one before it by up to this much [s] is tolerated (the Intel
+#: log has such reorderings, up to 0.9 s); by more, it is an error (every reader, and ``Slam.add_scan``)
+MAX_TIME_REVERSAL = 1.0
+#: a scan stamped this much [s] after the latest one is warned about, once: a broken stamp, or two logs in one
+MAX_TIME_GAP = 3600.0
+
+
 def _bad(where: str, message: str):
     from slam2d.errors import UsageError
 

@@ -208,7 +208,7 @@ def _consistency(args) -> int:
     from slam2d.config import load_config
     from slam2d.errors import UsageError
     from slam2d.eval.consistency import compare
-    from slam2d.eval.reference import check_scan_order, run_input_of
+    from slam2d.eval.reference import check_scan_order, recording_stamps, run_input_of
     from slam2d.io.source import open_source
     from slam2d.io.trajectory import read_tum
 
@@ -223,13 +223,7 @@ def _consistency(args) -> int:
     for other in args.against:
         trajectories[other] = _poses_of(other, t, log)
     stamps = []
-
-    def recorded(scans):
-        for s in scans:
-            stamps.append(s.timestamp)
-            yield s
-
-    out = compare(recorded(open_source(log)), cfg, trajectories)
+    out = compare(recording_stamps(open_source(log), stamps), cfg, trajectories)
     check_scan_order(t, np.array(stamps), log)  # a trajectory of another log, or re-sorted, scores nonsense
     if len(t) > len(stamps):
         raise UsageError(f"{traj}: {len(t)} poses for the {len(stamps)} scans of {log}: not a trajectory of this log")

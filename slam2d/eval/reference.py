@@ -119,6 +119,14 @@ def load_reference(ref_path, run_stamps: np.ndarray, run_input: str | None, tole
     return Reference(ref.scan_indices[keep], ref.poses[keep], ref.kind, ref.total_reference_scans)
 
 
+def recording_stamps(scans, stamps: list):
+    """``scans`` passed on, each one's timestamp appended to ``stamps`` (for ``check_scan_order`` after a
+    pass that needs the scans anyway)."""
+    for s in scans:
+        stamps.append(s.timestamp)
+        yield s
+
+
 def check_scan_order(run_stamps: np.ndarray, input_stamps: np.ndarray, run_input, tolerance: float = 1e-3) -> None:
     """The reference is matched to the input's scans by position, so the trajectory's poses must be
     those scans in order: a trajectory re-sorted by stamp, or of another run, would be scored against
@@ -160,13 +168,7 @@ def _load_reference(ref_path, run_stamps, run_input, tolerance) -> Reference:
                              "trajectory, a path from where the run was made; or --run-input): give --run-input LOG")
         corrected = read_corrected_carmen(ref_path)
         stamps = []
-
-        def recorded(scans):
-            for s in scans:
-                stamps.append(s.timestamp)
-                yield s
-
-        idx, poses, total = associate_by_ranges(recorded(open_source(run_input)), corrected)
+        idx, poses, total = associate_by_ranges(recording_stamps(open_source(run_input), stamps), corrected)
         if len(idx) == 0:
             raise InputError(ref_path, f"none of its scans has the same range readings as a scan of {run_input}")
         check_scan_order(run_stamps, np.array(stamps), run_input, tolerance)

@@ -58,15 +58,10 @@ from slam2d._kernels import classify_readings, survey_band
 from slam2d.errors import InputError
 from slam2d.geometry import between
 from slam2d.io._text import iter_lines
-from slam2d.types import Scan
+from slam2d.types import MAX_TIME_GAP, MAX_TIME_REVERSAL, Scan
 
 log = logging.getLogger(__name__)
 
-#: a scan stamped earlier than its predecessor by up to this much is tolerated and counted
-#: (the Intel log has such reorderings, up to 0.9 s); a larger jump back is an error
-MAX_TIME_REVERSAL = 1.0
-#: a scan stamped this much [s] after the one before is warned about (once): a broken stamp, or two logs in one
-MAX_TIME_GAP = 3600.0
 #: a finite reading beyond this [m], or a pose coordinate beyond MAX_COORDINATE, is corrupt data
 MAX_READING = 1e5
 MAX_COORDINATE = 1e9

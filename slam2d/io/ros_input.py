@@ -16,7 +16,7 @@ from slam2d.errors import InputError, UsageError
 from slam2d.geometry import interpolate_pose, quaternion_to_yaw
 from slam2d.io.ros2_msgs import stamp_text
 from slam2d.io.tf_tree import LaserMount, TfTree, frame_name, laser_mount
-from slam2d.types import Scan
+from slam2d.types import MAX_TIME_REVERSAL, Scan
 
 SCAN_TYPES = ("sensor_msgs/msg/LaserScan", "sensor_msgs/LaserScan")
 ODOM_TYPES = ("nav_msgs/msg/Odometry", "nav_msgs/Odometry")
@@ -24,8 +24,6 @@ POSE_TYPES = ("geometry_msgs/msg/PoseStamped", "geometry_msgs/PoseStamped")
 TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf2_msgs/TFMessage", "tf/msg/tfMessage", "tf/tfMessage")
 GROUND_TRUTH_TOPIC = "/ground_truth"
 log = logging.getLogger("slam2d.io")
-#: a scan stamped earlier than the latest one by more than this [s] is an error
-MAX_TIME_REVERSAL = 1.0
 
 
 def stamp(header) -> tuple[float, str]:
