@@ -167,6 +167,7 @@ class LoopClosureConfig(_Section):
     huber_scale: float = Field(5.0, gt=0.0, description="Huber threshold (in standard deviations) of the robust loop-constraint noise.")
     max_residual_translation: float = Field(0.2, gt=0.0, description="A loop constraint whose residual after optimization exceeds this [m] is removed.")
     max_residual_rotation_deg: float = Field(1.0, gt=0.0, description="... or this [deg].")
+    residual_exempt_support: int = Field(2, ge=0, description="... unless it closes consistent cycles with at least this many other loops through the local chain and contradicts none (consistency_check): its residual then shows local SLAM's chain bending less than it drifted, not a false loop. 0: every loop is judged by its residual.")
     optimize_every_n_nodes: int = Field(90, ge=1, description="Optimize the pose graph after this many new nodes (and once at the end).")
     incremental: bool = Field(True, description="Optimize with iSAM2 (Kaess et al. 2012: only the part of the graph that changed since the last solve) instead of batch Levenberg-Marquardt over the whole graph.")
     final_batch: bool = Field(False, description="With incremental, solve the final graph by batch Levenberg-Marquardt instead (slower; it did not change accuracy where measured).")

@@ -667,3 +667,49 @@ def test_a_heading_constraint_turns_the_map_without_pulling_it(remote):
             steps = np.hypot(*np.diff(poses[:, :2], axis=0).T)
             assert np.allclose(steps, 1.0, atol=1e-3)
             assert np.max(np.abs(poses[:, 1])) < 0.05  # straight again, on the x axis
+
+
+def test_confirmed_loops_close_consistent_cycles_with_enough_others_and_contradict_none():
+    from slam2d.backend.consistency import PairTests, confirmed, support
+
+    pairs = [(0, 1, True), (0, 2, True), (1, 2, True), (2, 3, False)]
+    src = np.array([a for a, b, _ in pairs] + [b for a, b, _ in pairs])
+    dst = np.array([b for a, b, _ in pairs] + [a for a, b, _ in pairs])
+    ok = np.array([c for _, _, c in pairs] * 2)
+    t = PairTests(4, src, dst, ok)
+    everyone = np.ones(4, bool)
+    pos, neg = support(t, everyone)
+    assert pos.tolist() == [2, 2, 2, 0] and neg.tolist() == [0, 0, 1, 1]
+    # 2 is contradicted by 3, 3 confirmed by nobody
+    assert confirmed(t, everyone, 2).tolist() == [True, True, False, False]
+    # a removed loop neither confirms nor contradicts, and is not confirmed itself
+    left = np.array([True, False, True, True])  # 1 removed: 0 and 2 keep one partner each
+    assert confirmed(t, left, 2).tolist() == [False, False, False, False]
+    assert confirmed(t, left, 1).tolist() == [True, False, False, False]  # 2 still contradicted by 3
+    left[3] = False
+    assert confirmed(t, left, 1).tolist() == [True, False, True, False]
+    assert not confirmed(t, everyone, 0).any()  # 0: no loop is spared the residual check
+
+
+@pytest.mark.parametrize("support", [2, 0])
+def test_global_slam_spares_the_loops_the_consistency_check_confirms_from_the_residual_check(support):
+    cfg = SlamConfig()
+    cfg.loop_closure.residual_exempt_support = support
+    scans = list(McapLog(BUNDLED))
+    slam = Slam(cfg)
+    gs = slam.global_slam
+    optimize, calls = gs.graph.optimize, []
+
+    def watched(*args, exempt=(), **kw):
+        live = {f.index for f in gs.graph.loops if not f.heading_only}
+        calls.append((list(exempt), live))
+        return optimize(*args, exempt=exempt, **kw)
+
+    gs.graph.optimize = watched
+    slam.run(scans)
+    assert calls
+    if support == 0:
+        assert all(not ex for ex, _ in calls)
+    else:
+        assert any(ex for ex, _ in calls)
+        assert all(set(ex) <= live for ex, live in calls)  # loops in the graph, and never heading constraints

@@ -112,3 +112,28 @@ def test_the_solver_process_solves_an_indeterminate_graph_and_says_so_on_stderr(
         remote.close()
     err = capfd.readouterr().err
     assert "slam2d: WARNING: pose graph: iSAM2 found the system indeterminate near n" in err
+
+
+@pytest.mark.parametrize("remote", [False, True])
+def test_the_residual_check_spares_the_loops_it_is_told_to_and_only_those(remote):
+    """A true loop the stiff chain cannot follow keeps a large residual: the check removes it unless
+    it is exempt (``consistency.confirmed``); a false loop in the same graph goes either way. The
+    exempt ids are the caller's loop ids, in the child process too."""
+    gt, est = _trajectory()
+    n = len(gt)
+    outcomes = []
+    for exempt in (False, True):
+        g = (RemotePoseGraph if remote else PoseGraph)(1.0, 0.3, 0.05)
+        try:
+            for k, p in enumerate(est):
+                g.add_node(k, p)
+                if k:  # a chain far stiffer than its drift: it will not bend to the loop
+                    g.add_intra(k - 1, k, between(est[k - 1], est[k]), np.diag([1e-8, 1e-8, 1e-9]))
+            true = g.add_loop(0, n - 1, between(gt[0], gt[-1]), [0.02, 0.02, 0.005], {})
+            false = g.add_loop(3, 30, np.array([4.0, -2.0, 1.0]), [0.02, 0.02, 0.005], {})
+            g.optimize(exempt=[true.index] if exempt else [])
+            outcomes.append((true in g.loops, false in g.loops))
+        finally:
+            if remote:
+                g.close()
+    assert outcomes == [(False, False), (True, False)]

@@ -25,6 +25,13 @@ along each chain. A wrong loop puts the same error into every cycle it closes, n
 one only its partners' errors, which the mean dilutes. A loop contradicted by at least two partners
 is removed, largest first, while its mean error exceeds both the base tolerance and the mean's own
 bound (the tolerances combined: 1/sqrt(sum of 1/tol²)), in translation or in rotation.
+
+The test also *confirms* loops (``confirmed``): one that closes consistent cycles with at least
+``residual_exempt_support`` of the loops left and contradicts none is exempt from the residual check
+after optimization. That check judges a loop by the solution it helped make: where local SLAM's
+chain between two places drifted more than the graph lets it bend, the optimizer leaves true loops
+with large residuals, and removing them lets a single loose step (a weak match's) take the whole
+correction. A confirmed loop's residual says that about the chain, not about the loop.
 """
 from __future__ import annotations
 
@@ -227,20 +234,36 @@ def loop_errors(t: PairTests, alive: np.ndarray, which: np.ndarray | None = None
     return out
 
 
+def support(t: PairTests, alive: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per loop, how many of its tested partners still in ``alive`` close a consistent cycle with it,
+    and how many an inconsistent one."""
+    live = alive[t.dst]
+    pos = np.bincount(t.src[live & t.consistent], minlength=t.n)
+    neg = np.bincount(t.src[live & ~t.consistent], minlength=t.n)
+    return pos, neg
+
+
+def confirmed(t: PairTests, alive: np.ndarray, min_consistent: int) -> np.ndarray:
+    """Which loops of ``alive`` close consistent cycles with at least ``min_consistent`` other loops of
+    ``alive`` and an inconsistent one with none: confirmed by loops that agree through the local chain
+    (``min_consistent`` 0: none is)."""
+    if min_consistent <= 0:
+        return np.zeros(t.n, bool)
+    pos, neg = support(t, alive)
+    return alive & (pos >= min_consistent) & (neg == 0)
+
+
 def inconsistent(t: PairTests, scores: np.ndarray, min_support: int = 0) -> list[tuple[int, str]]:
     """Indices to remove, each with its reason (module docstring)."""
     n = t.n
     alive = np.ones(n, bool)
     removed = []
 
-    def support():
-        live = alive[t.dst]
-        pos = np.bincount(t.src[live & t.consistent], minlength=n)
-        neg = np.bincount(t.src[live & ~t.consistent], minlength=n)
-        return pos, neg
+    def support_now():
+        return support(t, alive)
 
     while n:
-        pos, neg = support()
+        pos, neg = support_now()
         excess = np.where(alive & (neg >= 2), neg - pos, -10 ** 9)
         worst = int(np.lexsort((scores, -excess))[0])  # most contradicted, then the lowest score
         if excess[worst] > 0:
@@ -257,10 +280,11 @@ def inconsistent(t: PairTests, scores: np.ndarray, min_support: int = 0) -> list
             continue
         break
     if min_support > 0 and n:
-        pos, _ = support()
+        pos, _ = support_now()
         for i in np.flatnonzero(alive & (pos < min_support)):
             removed.append((int(i), f"unconfirmed: {pos[i]} consistent loops through the local chain < {min_support}"))
     return removed
 
 
-__all__ = ["ConsistencyParams", "PairCache", "PairTests", "candidate_pairs", "fresh_pairs", "pair_tests", "inconsistent", "loop_errors"]
+__all__ = ["ConsistencyParams", "PairCache", "PairTests", "candidate_pairs", "confirmed", "fresh_pairs", "pair_tests",
+           "inconsistent", "loop_errors", "support"]

@@ -23,7 +23,7 @@ import time
 
 import numpy as np
 
-from slam2d.backend.consistency import ConsistencyParams, PairCache, inconsistent
+from slam2d.backend.consistency import ConsistencyParams, PairCache, confirmed, inconsistent
 from slam2d.backend.drift import DriftBound
 from slam2d.backend.loop_closure import StackCache, SubmapMatcher, loop_points, probability_self_score
 from slam2d.backend.wide_search import coarse_grid, coarse_match, frame_offset, submap_content
@@ -108,6 +108,7 @@ class GlobalSlam:
         self.optimizations = 0
         self.loops_at_last_optimize = 0
         self.consistency_removed = 0
+        self._confirmed: list[int] = []  # loops the consistency check confirms: the residual check spares them
         self.gnc_removed = 0
         self.drift = DriftBound(lc.consistency_drift, math.radians(lc.consistency_drift_deg))
         # loop pairs tested for consistency, each once (``consistency.PairCache``)
@@ -660,7 +661,8 @@ class GlobalSlam:
         if self.lc.consistency_check:
             self._check_consistency()
         dropped = self.graph.optimize(batch=final and self.lc.final_batch,
-                                      error=final or getattr(self.observer, "wants_graph_error", False))
+                                      error=final or getattr(self.observer, "wants_graph_error", False),
+                                      exempt=self._confirmed if self.lc.consistency_check else ())
         self.optimize_seconds += time.perf_counter() - t0
         self.optimizations += 1
         self.loops_at_last_optimize = len(self.graph.loops)
@@ -696,8 +698,10 @@ class GlobalSlam:
         return got
 
     def _check_consistency(self):
-        """Remove loops that contradict other loops through the local chain (``consistency.py``)."""
+        """Remove loops that contradict other loops through the local chain, and note those the others
+        confirm, which the residual check then spares (``consistency.py``)."""
         loops = self._position_loops()
+        self._confirmed = []
         if len(loops) < 2 and self.lc.consistency_min_support == 0:
             return
         p = self._pairs.p
@@ -713,9 +717,13 @@ class GlobalSlam:
         rel, la, lj, pa, pj, scores = m[:, 0:3], m[:, 3:6], m[:, 6:9], m[:, 9], m[:, 10], m[:, 11]
         ba, bj = m[:, 12:14], m[:, 14:16]
         ids = np.array([f.index for f in loops], dtype=np.int64)
-        for i, reason in inconsistent(self._pairs.tests(ids, rel, la, lj, pa, pj, ba, bj), scores, p.min_support):
+        tests = self._pairs.tests(ids, rel, la, lj, pa, pj, ba, bj)
+        alive = np.ones(len(loops), bool)
+        for i, reason in inconsistent(tests, scores, p.min_support):
             self.graph.remove_loop(loops[i], reason)
             self.consistency_removed += 1
+            alive[i] = False
+        self._confirmed = [loops[i].index for i in np.flatnonzero(confirmed(tests, alive, self.lc.residual_exempt_support))]
 
     def submap_transforms(self) -> dict[int, np.ndarray]:
         """global ← local transform of every finished submap's grid (from its first node)."""

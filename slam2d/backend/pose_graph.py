@@ -346,17 +346,20 @@ class PoseGraph:
                 out.append((excess, f))
         return out
 
-    def optimize(self, max_rounds: int = 20, batch: bool = False, error: bool = True) -> list[LoopFactor]:
+    def optimize(self, max_rounds: int = 20, batch: bool = False, error: bool = True, exempt=()) -> list[LoopFactor]:
         """Solve; then repeatedly drop the worst loop constraints whose residual stays large and
         solve again. Only the worst quarter of the offenders goes per round, so that a few false
         constraints that bend the graph do not take the true ones with them. Returns the dropped.
         ``batch``: Levenberg-Marquardt over the whole graph even when incremental (iSAM2 is not
         updated afterwards: for the last solve). ``error``: leave the graph's error at the solution
-        in ``last_error`` (else NaN after an iSAM2 solve)."""
+        in ``last_error`` (else NaN after an iSAM2 solve). ``exempt``: ids of loops this check leaves
+        in place whatever their residual (those other loops confirm: ``consistency.confirmed``); a
+        loop's id is ``record["id"]`` where its record has one (``solver_process``), else its index."""
         self._solve(batch)
         dropped = []
+        spared = set(exempt)
         for rnd in range(max_rounds + 1):
-            bad = self._offenders()
+            bad = [b for b in self._offenders() if b[1].record.get("id", b[1].index) not in spared]
             if not bad:
                 break
             bad.sort(key=lambda b: -b[0])

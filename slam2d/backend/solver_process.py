@@ -122,9 +122,10 @@ class RemotePoseGraph:
             out.append(f)
         return out
 
-    def optimize(self, max_rounds: int = 20, batch: bool = False, error: bool = True) -> list[LoopFactor]:
-        """``PoseGraph.optimize`` in the child; every node's estimate comes back."""
-        r = self._call("optimize", max_rounds, batch, error)
+    def optimize(self, max_rounds: int = 20, batch: bool = False, error: bool = True, exempt=()) -> list[LoopFactor]:
+        """``PoseGraph.optimize`` in the child (``exempt``: ids of this proxy's loops); every node's
+        estimate comes back."""
+        r = self._call("optimize", max_rounds, batch, error, [int(i) for i in exempt])
         self._poses = {int(j): p for j, p in zip(r["ids"], r["poses"])}
         self.iterations, self.last_error = r["iterations"], r["last_error"]
         return self._dropped(r["dropped"])
