@@ -258,12 +258,8 @@ def inconsistent(t: PairTests, scores: np.ndarray, min_support: int = 0) -> list
     n = t.n
     alive = np.ones(n, bool)
     removed = []
-
-    def support_now():
-        return support(t, alive)
-
     while n:
-        pos, neg = support_now()
+        pos, neg = support(t, alive)
         excess = np.where(alive & (neg >= 2), neg - pos, -10 ** 9)
         worst = int(np.lexsort((scores, -excess))[0])  # most contradicted, then the lowest score
         if excess[worst] > 0:
@@ -280,7 +276,7 @@ def inconsistent(t: PairTests, scores: np.ndarray, min_support: int = 0) -> list
             continue
         break
     if min_support > 0 and n:
-        pos, _ = support_now()
+        pos, _ = support(t, alive)
         for i in np.flatnonzero(alive & (pos < min_support)):
             removed.append((int(i), f"unconfirmed: {pos[i]} consistent loops through the local chain < {min_support}"))
     return removed
