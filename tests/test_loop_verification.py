@@ -713,3 +713,35 @@ def test_global_slam_spares_the_loops_the_consistency_check_confirms_from_the_re
     else:
         assert any(ex for ex, _ in calls)
         assert all(set(ex) <= live for ex, live in calls)  # loops in the graph, and never heading constraints
+
+
+def test_a_cluster_of_mutually_consistent_false_loops_is_not_spared_from_the_residual_check():
+    """Three false loops with the same error on nearby nodes of one submap (the kind that can agree
+    with each other): the true loops around them contradict them, so none is confirmed and spared by
+    the residual check (``residual_exempt_support``, on by default), and none stays in the final graph."""
+    cfg = SlamConfig()
+    scans = list(McapLog(BUNDLED))
+    gt = np.array([s.ground_truth for s in scans])
+    slam = Slam(cfg)
+    gs = slam.global_slam
+    commit = gs._commit
+    injected = []
+
+    def commit_and_inject(rec, loop):
+        commit(rec, loop)
+        if (rec["accepted"] and len(injected) < 3 and len(gs.graph.loops) >= 15
+                and (not injected or (rec["submap"] == injected[0]["submap"] and rec["to_scan"] - injected[-1]["to_scan"] <= 20))):
+            false = dict(rec, relative_pose=list(compose(np.array(rec["relative_pose"]), [0.6, -0.4, 0.08])),
+                         reason="accepted", in_final_graph=True, injected=True)
+            gs.graph.add_loop(rec["from_scan"], rec["to_scan"], np.array(false["relative_pose"]),
+                              [0.02, 0.02, math.radians(0.3)], false)
+            gs.records.append(false)
+            injected.append(false)
+
+    gs._commit = commit_and_inject
+    slam.run(scans)
+    assert len(injected) == 3, "no three nearby true loops to copy"
+    assert all(agrees(gt, f, 0.3, 2.0) is False for f in injected)
+    assert all(f["in_final_graph"] is False for f in injected), [f["reason"] for f in injected]
+    final = [r for r in gs.records if r.get("in_final_graph")]
+    assert len(final) >= 20 and all(agrees(gt, r, 0.3, 2.0) for r in final)
