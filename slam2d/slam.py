@@ -436,8 +436,6 @@ class Slam:
         return s
 
 
-
-
 class NodeStamp(NamedTuple):
     """What global SLAM reads of a node's scan."""
 

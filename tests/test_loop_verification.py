@@ -363,12 +363,10 @@ def test_pair_cache_equals_testing_the_current_loops_afresh():
         assert len(got.src) == len(want.src)
 
 
-def test_consistency_check_rejects_an_injected_false_loop_on_the_simulator():
-    cfg = SlamConfig()
-    # the consistency check alone judges here: the residual check and GNC, which can reach the false
-    # loop first when the graph is optimized before it has enough partners, are switched off
-    cfg.loop_closure.max_residual_translation, cfg.loop_closure.max_residual_rotation_deg = 1e3, 1e3
-    cfg.loop_closure.gnc_final = False
+def _run_with_false_loops(cfg, take):
+    """Run the simulator's log; copy the accepted records for which ``take(rec, injected)`` says so (once
+    15 loops are in the graph) as false loops: the same ends, the relative pose off by 0.6 m, 0.4 m and
+    0.08 rad. Returns (ground-truth poses, the global SLAM, the injected records)."""
     scans = list(McapLog(BUNDLED))
     gt = np.array([s.ground_truth for s in scans])
     slam = Slam(cfg)
@@ -378,7 +376,7 @@ def test_consistency_check_rejects_an_injected_false_loop_on_the_simulator():
 
     def commit_and_inject(rec, loop):  # every search's record passes here, accepted or not
         commit(rec, loop)
-        if rec["accepted"] and not injected and len(gs.graph.loops) >= 15:
+        if rec["accepted"] and len(gs.graph.loops) >= 15 and take(rec, injected):
             false = dict(rec, relative_pose=list(compose(np.array(rec["relative_pose"]), [0.6, -0.4, 0.08])),
                          reason="accepted", in_final_graph=True, injected=True)
             gs.graph.add_loop(rec["from_scan"], rec["to_scan"], np.array(false["relative_pose"]),
@@ -388,6 +386,16 @@ def test_consistency_check_rejects_an_injected_false_loop_on_the_simulator():
 
     gs._commit = commit_and_inject
     slam.run(scans)
+    return gt, gs, injected
+
+
+def test_consistency_check_rejects_an_injected_false_loop_on_the_simulator():
+    cfg = SlamConfig()
+    # the consistency check alone judges here: the residual check and GNC, which can reach the false
+    # loop first when the graph is optimized before it has enough partners, are switched off
+    cfg.loop_closure.max_residual_translation, cfg.loop_closure.max_residual_rotation_deg = 1e3, 1e3
+    cfg.loop_closure.gnc_final = False
+    gt, gs, injected = _run_with_false_loops(cfg, lambda rec, injected: not injected)
     assert injected, "no true loop to copy"
     false = injected[0]
     assert agrees(gt, false, 0.3, 2.0) is False
@@ -719,27 +727,12 @@ def test_a_cluster_of_mutually_consistent_false_loops_is_not_spared_from_the_res
     """Three false loops with the same error on nearby nodes of one submap (the kind that can agree
     with each other): the true loops around them contradict them, so none is confirmed and spared by
     the residual check (``residual_exempt_support``, on by default), and none stays in the final graph."""
-    cfg = SlamConfig()
-    scans = list(McapLog(BUNDLED))
-    gt = np.array([s.ground_truth for s in scans])
-    slam = Slam(cfg)
-    gs = slam.global_slam
-    commit = gs._commit
-    injected = []
 
-    def commit_and_inject(rec, loop):
-        commit(rec, loop)
-        if (rec["accepted"] and len(injected) < 3 and len(gs.graph.loops) >= 15
-                and (not injected or (rec["submap"] == injected[0]["submap"] and rec["to_scan"] - injected[-1]["to_scan"] <= 20))):
-            false = dict(rec, relative_pose=list(compose(np.array(rec["relative_pose"]), [0.6, -0.4, 0.08])),
-                         reason="accepted", in_final_graph=True, injected=True)
-            gs.graph.add_loop(rec["from_scan"], rec["to_scan"], np.array(false["relative_pose"]),
-                              [0.02, 0.02, math.radians(0.3)], false)
-            gs.records.append(false)
-            injected.append(false)
+    def nearby(rec, injected):  # up to three, in the first one's submap, each within 20 scans of the last
+        return len(injected) < 3 and (not injected or (rec["submap"] == injected[0]["submap"]
+                                                        and rec["to_scan"] - injected[-1]["to_scan"] <= 20))
 
-    gs._commit = commit_and_inject
-    slam.run(scans)
+    gt, gs, injected = _run_with_false_loops(SlamConfig(), nearby)
     assert len(injected) == 3, "no three nearby true loops to copy"
     assert all(agrees(gt, f, 0.3, 2.0) is False for f in injected)
     assert all(f["in_final_graph"] is False for f in injected), [f["reason"] for f in injected]

@@ -108,7 +108,8 @@ class GlobalSlam:
         self.optimizations = 0
         self.loops_at_last_optimize = 0
         self.consistency_removed = 0
-        self._confirmed: list[int] = []  # loops the consistency check confirms: the residual check spares them
+        # loops the last consistency check confirmed (none when it is off): the residual check spares them
+        self._confirmed: list[int] = []
         self.gnc_removed = 0
         self.drift = DriftBound(lc.consistency_drift, math.radians(lc.consistency_drift_deg))
         # loop pairs tested for consistency, each once (``consistency.PairCache``)
@@ -662,7 +663,7 @@ class GlobalSlam:
             self._check_consistency()
         dropped = self.graph.optimize(batch=final and self.lc.final_batch,
                                       error=final or getattr(self.observer, "wants_graph_error", False),
-                                      exempt=self._confirmed if self.lc.consistency_check else ())
+                                      exempt=self._confirmed)
         self.optimize_seconds += time.perf_counter() - t0
         self.optimizations += 1
         self.loops_at_last_optimize = len(self.graph.loops)
