@@ -84,6 +84,27 @@ def _fake_shared(tmp_path, every=6, count=100):
     return shared
 
 
+def test_benchmark_peak_rss_sums_the_process_tree_and_tells_file_backed_memory_apart():
+    """``timed`` samples the resident memory of a process and its children: a child holding 200 MB
+    of anonymous memory counts in the peak and not in its file-backed part (shared libraries'
+    pages, which move with the page cache)."""
+    sys.path.insert(0, str(ROOT / "tools"))
+    import os
+
+    import benchmark
+
+    total, file_mb = benchmark._tree_rss_mb(os.getpid())
+    status = dict(line.split(":", 1) for line in Path("/proc/self/status").read_text().splitlines() if ":" in line)
+    assert abs(total - int(status["VmRSS"].split()[0]) / 1024) < 20
+    assert 0 < file_mb < total
+    child = "import time; x = b'\\x01' * 200_000_000; time.sleep(1.5)"
+    parent = f"import subprocess, sys; subprocess.run([sys.executable, '-c', {child!r}])"
+    r = benchmark.timed([sys.executable, "-c", parent])
+    assert r["returncode"] == 0
+    assert r["peak_rss_mb"] > 200 and r["peak_rss_file_mb"] is not None
+    assert r["peak_rss_mb"] - r["peak_rss_file_mb"] > 190
+
+
 def test_benchmark_finds_corrected_logs_and_caches_generated_ones(tmp_path):
     sys.path.insert(0, str(ROOT / "tools"))
     import benchmark
@@ -149,6 +170,11 @@ def test_benchmark_runs_every_suite_on_tiny_logs(tmp_path):
     # the relations logs (the speed targets) are timed --speed-repeat times, the other suites once
     assert len(b["rows"][0]["slam2d"]["wall_s_runs"]) == 2 and len(b["degraded"][0]["slam2d"]["wall_s_runs"]) == 1
     assert "median wall time and largest peak of 2 runs" in md
+    # the relations table's peak RSS shows its file-backed part where the sampled tree held the peak
+    rel = b["rows"][0]["slam2d"]
+    if rel["peak_rss_file_mb"] is not None:
+        assert 0 < rel["peak_rss_file_mb"] < rel["peak_rss_mb"]
+        assert f"| {rel['peak_rss_mb']:.0f} ({rel['peak_rss_file_mb']:.0f} file) |" in md
     # the same log without its odometry: the run says so (its config), and it is scored on the relations
     nod = b["no_odometry"]
     assert [row["dataset"] for row in nod] == ["tiny"] and "relations" in nod[0]["slam2d"] and "karto" not in nod[0]

@@ -35,6 +35,12 @@ def _rel(m) -> str:
     return f"{fmt((m['abs_trans_m']['mean'], m['abs_trans_m']['std']))} | {m['abs_rot_deg']['mean']:.3f} ± {m['abs_rot_deg']['std']:.3f}"
 
 
+def _rss(run) -> str:
+    """Peak RSS MB, with its file-backed part in brackets where the benchmark measured it."""
+    f = run.get("peak_rss_file_mb")
+    return f"{run['peak_rss_mb']:.0f}" + (f" ({f:.0f} file)" if f is not None else "")
+
+
 def _pct(p) -> str:
     """'100.0 % of 12' from a precision record of slam2d.eval.loops; '— of 0' when none was judged."""
     n = p["true"] + p["false"]
@@ -64,11 +70,11 @@ def table(rows, args) -> str:
         lat = s.get("timings", {}).get("add_scan")
         lat_txt = f"{lat['p50_ms']:.1f} / {lat['p99_ms']:.1f} / {lat['max_ms']:.0f}" if lat else "—"
         lines.append(f"| {n} | slam2d ({s['mode']}) | {s['scans']} | {s['duration_s']:.1f} | {s['wall_s']:.1f} | {ratio} | "
-                     f"{s['real_time_factor']:.1f} | {s['peak_rss_mb']:.0f} | {lat_txt} | {_rel(s['relations'])} | "
+                     f"{s['real_time_factor']:.1f} | {_rss(s)} | {lat_txt} | {_rel(s['relations'])} | "
                      f"{loops_txt(s)} | {prec} | {health_txt(s)} |")
         if "relations" in k:
             lines.append(f"| {n} | Karto peer (sequential) | {s['scans']} | {s['duration_s']:.1f} | {k['wall_s']:.1f} | 1.0 | "
-                         f"{s['duration_s'] / k['wall_s']:.1f} | {k['peak_rss_mb']:.0f} | | {_rel(k['relations'])} | — | — | |")
+                         f"{s['duration_s'] / k['wall_s']:.1f} | {_rss(k)} | | {_rel(k['relations'])} | — | — | |")
         om = row["odometry"]["relations"]
         lines.append(f"| {n} | raw odometry | {s['scans']} | | | | | | | {_rel(om)} | | | |")
         c = CARTOGRAPHER.get(n)
