@@ -3,12 +3,11 @@ from __future__ import annotations
 
 import math
 import platform
-import resource
-import sys
 from pathlib import Path
 
 import numpy as np
 
+from slam2d.allocator import peak_rss_mb as _peak_rss_mb
 from slam2d.errors import InputError
 
 
@@ -96,8 +95,8 @@ def describe(source, usable_range: float | None = None) -> dict:
 
 
 def peak_rss_mb() -> float:
-    kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return round(kb / 1024 if sys.platform != "darwin" else kb / 1024 / 1024, 1)
+    """The process's own peak resident memory [MB] (``allocator.peak_rss_mb``), to 0.1 MB."""
+    return round(_peak_rss_mb(), 1)
 
 
 def run_summary(input_path, mode, times: np.ndarray, counts: dict, timings: dict, map_s: float, tracker) -> dict:

@@ -111,6 +111,11 @@ def test_benchmark_peak_rss_sums_the_process_tree_and_tells_file_backed_memory_a
     assert r["returncode"] == 0
     assert r["peak_rss_mb"] > 200 and r["peak_rss_file_mb"] is not None
     assert r["peak_rss_mb"] - r["peak_rss_file_mb"] > 190
+    # a small program started from a large process reports its own peak, not the large one's (the
+    # rusage figure of a child holds the peak of the address space its exec replaced)
+    ballast = b"\x01" * 300_000_000
+    small = benchmark.timed([sys.executable, "-c", "import time; time.sleep(0.5)"])
+    assert len(ballast) and small["returncode"] == 0 and small["peak_rss_mb"] < 100
 
 
 def test_benchmark_finds_corrected_logs_and_caches_generated_ones(tmp_path):

@@ -106,18 +106,33 @@ def _tree_rss_mb(pid: int) -> tuple[float, float]:
     return pages * os.sysconf("SC_PAGE_SIZE") / 2 ** 20, file_kb / 1024
 
 
+def _own_peak_mb(pid: int) -> float:
+    """The high-water mark of a process's own address space (VmHWM, MB; 0 once it is gone)."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024
+    except (OSError, IndexError, ValueError):
+        pass
+    return 0.0
+
+
 def timed(cmd: list[str]) -> dict:
     """Run a process; wall time and peak RSS (MB): the larger of its own peak and the peak of its
     resident memory summed with its child processes' (slam2d's pose-graph solver), sampled every 0.1 s;
-    ``peak_rss_file_mb``: the file-backed part of that summed peak (None where its own peak is larger)."""
+    ``peak_rss_file_mb``: the file-backed part of that summed peak (None where its own peak is larger).
+    Its own peak is its address space's high-water mark, read as it runs: the rusage figure would
+    also hold this process's own peak, whose address space the child's exec replaced."""
     with tempfile.TemporaryFile("w+") as fo, tempfile.TemporaryFile("w+") as fe:
         t0 = time.perf_counter()
         p = subprocess.Popen(cmd, stdout=fo, stderr=fe, text=True)
-        tree_peak, tree_file = 0.0, 0.0
+        tree_peak, tree_file, own = 0.0, 0.0, 0.0
         while True:
-            pid, status, usage = os.wait4(p.pid, os.WNOHANG)
+            pid, status, _ = os.wait4(p.pid, os.WNOHANG)
             if pid:
                 break
+            own = max(own, _own_peak_mb(p.pid))
             rss, file_mb = _tree_rss_mb(p.pid)
             if rss > tree_peak:
                 tree_peak, tree_file = rss, file_mb
@@ -127,7 +142,6 @@ def timed(cmd: list[str]) -> dict:
         fe.seek(0)
         out, err = fo.read(), fe.read()
     p.returncode = os.waitstatus_to_exitcode(status)
-    own = usage.ru_maxrss / 1024.0
     return {"wall_s": wall, "peak_rss_mb": max(own, tree_peak), "peak_rss_file_mb": tree_file if tree_peak >= own else None,
             "returncode": p.returncode, "stdout": out, "stderr": err}
 
@@ -187,7 +201,9 @@ def run_log(label: str, log: Path, args, outdir: Path, peer: bool = True, extra:
     summary = json.loads((outdir / label / "summary.json").read_text())
     row: dict = {"dataset": label, "log": str(log)}
     row["slam2d"] = {"wall_s": r["wall_s"], "wall_s_runs": [round(x["wall_s"], 2) for x in runs],
-                     "peak_rss_mb": r["peak_rss_mb"], "peak_rss_file_mb": r.get("peak_rss_file_mb"),
+                     "peak_rss_mb": max(r["peak_rss_mb"], summary.get("peak_rss_mb") or 0.0),
+                     "peak_rss_file_mb": r.get("peak_rss_file_mb") if r["peak_rss_mb"] >= (summary.get("peak_rss_mb") or 0.0)
+                     else None,
                      "scans": summary["scans"],
                      "duration_s": summary["duration_s"], "real_time_factor": summary["duration_s"] / r["wall_s"],
                      "timings": summary.get("timings", {}), "mode": summary.get("mode"),

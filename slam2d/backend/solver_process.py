@@ -22,6 +22,7 @@ from multiprocessing.connection import Connection
 
 import numpy as np
 
+from slam2d.allocator import peak_rss_mb
 from slam2d.types import LoopFactor
 
 
@@ -184,7 +185,7 @@ def _serve(recv: Connection, send: Connection):
                 reply = {}
             elif kind == "stats":
                 dropped = []
-                reply = {"peak_rss_mb": _peak_rss_mb()}
+                reply = {"peak_rss_mb": peak_rss_mb()}
             else:
                 raise ValueError(f"unknown request {kind!r}")
             for f in dropped:
@@ -200,21 +201,6 @@ def _serve(recv: Connection, send: Connection):
             send.send(out)
         except OSError:  # the caller has gone (it stopped on an error of its own, which it reports)
             return
-
-
-def _peak_rss_mb() -> float:
-    """This process's peak resident memory since it began running this module: VmHWM (the rusage
-    figure can carry over the forked parent's, which the exec replaced)."""
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    import resource
-
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def _apply(pose_graph, graph, loops: dict, msg):
