@@ -40,21 +40,29 @@ def return_freed_memory() -> None:
         libc.malloc_trim(0)
 
 
+def process_peak_mb(pid: int | str = "self") -> float | None:
+    """The high-water mark of a process's own address space (VmHWM) [MB]; None where /proc does not
+    say (another system, or the process has gone)."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except (OSError, IndexError, ValueError):
+        pass
+    return None
+
+
 def peak_rss_mb() -> float:
     """This process's peak resident memory [MB] since its program began: VmHWM, the high-water mark
     of its own address space. The rusage figure (``ru_maxrss``) also holds, on Linux, the peak of the
     address space the exec replaced: a process forked, or vforked, from a larger one (a benchmark,
     a test runner) reports at least that one's peak. rusage where /proc is not there."""
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
+    own = process_peak_mb()
+    if own is not None:
+        return own
     import resource
     import sys
 
     kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return kb / 1024 if sys.platform != "darwin" else kb / 1024 / 1024
-

@@ -93,29 +93,16 @@ def _tree_rss_mb(pid: int) -> tuple[float, float]:
         p = todo.pop()
         tree.append(p)
         todo.extend(c for c, pp in parent.items() if pp == p)
-    pages = 0
-    file_kb = 0
+    rss_kb = file_kb = 0
     for p in tree:
         try:
-            with open(f"/proc/{p}/statm") as f:
-                pages += int(f.read().split()[1])
             with open(f"/proc/{p}/status") as f:
-                file_kb += sum(int(line.split()[1]) for line in f if line.startswith(("RssFile:", "RssShmem:")))
-        except (OSError, IndexError, ValueError):
+                fields = dict(line.split(":", 1) for line in f if line.startswith(("VmRSS:", "RssFile:", "RssShmem:")))
+            rss_kb += int(fields["VmRSS"].split()[0])
+            file_kb += sum(int(fields[k].split()[0]) for k in ("RssFile", "RssShmem") if k in fields)
+        except (OSError, IndexError, ValueError, KeyError):
             pass
-    return pages * os.sysconf("SC_PAGE_SIZE") / 2 ** 20, file_kb / 1024
-
-
-def _own_peak_mb(pid: int) -> float:
-    """The high-water mark of a process's own address space (VmHWM, MB; 0 once it is gone)."""
-    try:
-        with open(f"/proc/{pid}/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 1024
-    except (OSError, IndexError, ValueError):
-        pass
-    return 0.0
+    return rss_kb / 1024, file_kb / 1024
 
 
 def timed(cmd: list[str]) -> dict:
@@ -124,6 +111,8 @@ def timed(cmd: list[str]) -> dict:
     ``peak_rss_file_mb``: the file-backed part of that summed peak (None where its own peak is larger).
     Its own peak is its address space's high-water mark, read as it runs: the rusage figure would
     also hold this process's own peak, whose address space the child's exec replaced."""
+    from slam2d.allocator import process_peak_mb
+
     with tempfile.TemporaryFile("w+") as fo, tempfile.TemporaryFile("w+") as fe:
         t0 = time.perf_counter()
         p = subprocess.Popen(cmd, stdout=fo, stderr=fe, text=True)
@@ -132,7 +121,7 @@ def timed(cmd: list[str]) -> dict:
             pid, status, _ = os.wait4(p.pid, os.WNOHANG)
             if pid:
                 break
-            own = max(own, _own_peak_mb(p.pid))
+            own = max(own, process_peak_mb(p.pid) or 0.0)
             rss, file_mb = _tree_rss_mb(p.pid)
             if rss > tree_peak:
                 tree_peak, tree_file = rss, file_mb
@@ -199,11 +188,12 @@ def run_log(label: str, log: Path, args, outdir: Path, peer: bool = True, extra:
             peer_runs.append(timed(peer_cmd))
     r = _median_run(runs)
     summary = json.loads((outdir / label / "summary.json").read_text())
+    own_end = summary.get("peak_rss_mb") or 0.0
     row: dict = {"dataset": label, "log": str(log)}
     row["slam2d"] = {"wall_s": r["wall_s"], "wall_s_runs": [round(x["wall_s"], 2) for x in runs],
-                     "peak_rss_mb": max(r["peak_rss_mb"], summary.get("peak_rss_mb") or 0.0),
-                     "peak_rss_file_mb": r.get("peak_rss_file_mb") if r["peak_rss_mb"] >= (summary.get("peak_rss_mb") or 0.0)
-                     else None,
+                     # its own figure at its end as well: sampling every 0.1 s can miss the last moments
+                     "peak_rss_mb": max(r["peak_rss_mb"], own_end),
+                     "peak_rss_file_mb": r.get("peak_rss_file_mb") if r["peak_rss_mb"] >= own_end else None,
                      "scans": summary["scans"],
                      "duration_s": summary["duration_s"], "real_time_factor": summary["duration_s"] / r["wall_s"],
                      "timings": summary.get("timings", {}), "mode": summary.get("mode"),
